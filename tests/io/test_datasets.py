@@ -1,0 +1,33 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+from torchsfm.camera import project
+from torchsfm.errors import InputError
+from torchsfm.io.datasets import read_oxford_multiview
+
+
+@pytest.mark.parametrize("name, views, points", [("oxford_house", 10, 672), ("oxford_merton1", 3, 717)])
+def test_oxford_reader_matches_the_provenance(shared_data, name, views, points):
+    dataset = read_oxford_multiview(shared_data / name)
+    assert dataset.num_views == views and dataset.points3d.shape == (points, 3)
+    assert dataset.tracks.shape == (points, views)
+    errors = []
+    for v in range(views):
+        seen = dataset.tracks[:, v] >= 0
+        reprojected = project(dataset.P[v], dataset.points3d[seen])
+        errors.append((reprojected - dataset.corners[v][dataset.tracks[seen, v]]).norm(dim=-1))
+    median = torch.cat(errors).median().item()
+    assert median < 0.3  # PROVENANCE: 0.264 px (house), 0.125 px (Merton)
+
+
+def test_relative_pose_is_a_proper_rotation(shared_data):
+    dataset = read_oxford_multiview(shared_data / "oxford_house")
+    R, t = dataset.relative_pose(0, 1)
+    assert_close(torch.linalg.det(R), torch.tensor(1.0, dtype=torch.float64))
+    assert_close(t.norm(), torch.tensor(1.0, dtype=torch.float64))
+
+
+def test_not_a_dataset_folder(tmp_path):
+    with pytest.raises(InputError, match="not an Oxford VGG multi-view folder"):
+        read_oxford_multiview(tmp_path)

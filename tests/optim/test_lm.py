@@ -1,0 +1,69 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+from torchsfm.config import LMConfig
+from torchsfm.geometry.rotation import axis_angle_to_rotation
+from torchsfm.optim.lm import forward_jacobian, levenberg_marquardt
+
+DOUBLE = dict(dtype=torch.float64)
+
+
+def rosenbrock(p):
+    """Residuals (B, 2) of the Rosenbrock function, minimum 0 at (1, 1)."""
+    return torch.stack([10 * (p[:, 1] - p[:, 0] ** 2), 1 - p[:, 0]], dim=-1)
+
+
+def test_batched_rosenbrock_converges_per_problem():
+    start = torch.tensor([[-1.2, 1.0], [0.5, 0.5], [1.0, 1.0], [3.0, -2.0]], **DOUBLE)
+    result = levenberg_marquardt(rosenbrock, start, LMConfig())
+    assert_close(result.params, torch.ones(4, 2, **DOUBLE), rtol=0, atol=1e-8)
+    assert result.converged.all()
+    assert result.num_iterations[2] == 0  # started at the optimum: nothing to do
+    assert (result.num_iterations[[0, 3]] > result.num_iterations[1]).all()
+    assert (result.cost <= result.initial_cost).all()
+
+
+def test_analytic_jacobian_gives_the_same_answer():
+    def jacobian(p):
+        rows = [torch.stack([-20 * p[:, 0], torch.full_like(p[:, 0], 10.0)], -1), torch.stack([-torch.ones_like(p[:, 0]), torch.zeros_like(p[:, 0])], -1)]
+        return torch.stack(rows, dim=1)
+
+    start = torch.tensor([[-1.2, 1.0]], **DOUBLE)
+    assert_close(jacobian(start), forward_jacobian(rosenbrock, start, lambda p, d: p + d, 2))
+    result = levenberg_marquardt(rosenbrock, start, LMConfig(), jacobian=jacobian)
+    assert_close(result.params, torch.ones(1, 2, **DOUBLE), rtol=0, atol=1e-8)
+
+
+def test_manifold_parameters_with_a_retraction():
+    """Recover rotations from noisy vectors: R ← R exp([δ]x), states are flattened 3x3 matrices."""
+    g = torch.Generator().manual_seed(0)
+    R_true = axis_angle_to_rotation(torch.randn(5, 3, generator=g, **DOUBLE))
+    points = torch.randn(5, 20, 3, generator=g, **DOUBLE)
+    observed = points @ R_true.transpose(-1, -2)
+
+    def residuals(state):
+        return (points @ state.reshape(-1, 3, 3).transpose(-1, -2) - observed).flatten(1)
+
+    def retract(state, delta):
+        return (state.reshape(-1, 3, 3) @ axis_angle_to_rotation(delta)).flatten(1)
+
+    start = torch.eye(3, **DOUBLE).expand(5, 3, 3).flatten(1)
+    result = levenberg_marquardt(residuals, start, LMConfig(), retract=retract, tangent_dim=3)
+    assert_close(result.params.reshape(-1, 3, 3), R_true, rtol=0, atol=1e-9)
+
+
+def test_iteration_cap_reports_not_converged():
+    result = levenberg_marquardt(rosenbrock, torch.tensor([[-1.2, 1.0]], **DOUBLE), LMConfig(max_iterations=2))
+    assert not result.converged.any()
+    assert result.num_iterations.item() == 2
+
+
+@pytest.mark.parametrize("shift", [1e3, 1e-3])
+def test_damping_adapts_to_scale(shift):
+    """A linear least-squares problem is solved whatever the scale of the Jacobian."""
+    A = shift * torch.randn(1, 10, 3, generator=torch.Generator().manual_seed(2), **DOUBLE)
+    b = torch.randn(1, 10, **DOUBLE)
+    result = levenberg_marquardt(lambda p: (A @ p[..., None]).squeeze(-1) - b, torch.zeros(1, 3, **DOUBLE), LMConfig())
+    expected = torch.linalg.lstsq(A, b[..., None]).solution.squeeze(-1)
+    assert_close(result.params, expected, rtol=1e-6, atol=1e-9)

@@ -1,0 +1,79 @@
+import dataclasses
+import math
+
+import pytest
+import torch
+from torch.testing import assert_close
+
+from torchsfm.config import RansacConfig
+from torchsfm.geometry.fundamental import normalize_scale
+from torchsfm.robust.models import FundamentalModel
+from torchsfm.robust.ransac import SCORINGS, ransac, required_trials
+from torchsfm.testing import synthetic_two_view
+
+
+def _data(*scenes):
+    return torch.stack([torch.cat([s.x1, s.x2], -1) for s in scenes])
+
+
+def test_required_trials_follows_eq_3_3_7():
+    ratio = torch.tensor([0.5, 1.0, 0.0, 0.9])
+    needed = required_trials(ratio, 8, 0.99, 10_000)
+    assert needed[0] == math.ceil(math.log(0.01) / math.log(1 - 0.5**8))
+    assert needed[1] == 1 and needed[2] == 10_000
+    assert needed[3] == math.ceil(math.log(0.01) / math.log(1 - 0.9**8))
+
+
+@pytest.mark.parametrize("sampler", ["bucketed", "uniform"])
+@pytest.mark.parametrize("scoring", sorted(SCORINGS))
+def test_planted_outliers_are_found_exactly(sampler, scoring):
+    """Noise-free inliers, outliers planted far from the epipolar geometry: the mask is exact."""
+    scenes = [synthetic_two_view(300, outlier_ratio=0.5, seed=seed) for seed in range(3)]
+    data = _data(*scenes)
+    config = dataclasses.replace(RansacConfig(), sampler=sampler, scoring=scoring)
+    result = ransac(FundamentalModel(data), data, config, generator=torch.Generator().manual_seed(0))
+    for b, scene in enumerate(scenes):
+        assert torch.equal(result.inlier_mask[b], scene.is_inlier)
+        F, truth = normalize_scale(result.model[b]), scene.F
+        assert_close(F * torch.sign((F * truth).sum()), truth, rtol=0, atol=1e-8)
+    assert result.success.all()
+
+
+def test_adaptive_stop_draws_few_samples_without_outliers():
+    scene = synthetic_two_view(200, seed=1)
+    data = _data(scene)
+    result = ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(0))
+    assert result.num_trials.item() <= 32  # the first round already reaches confidence
+
+
+def test_more_outliers_need_more_trials_and_the_cap_holds():
+    low = _data(synthetic_two_view(300, noise=0.3, outlier_ratio=0.2, seed=2))
+    high = _data(synthetic_two_view(300, noise=0.3, outlier_ratio=0.6, seed=2))
+    config = RansacConfig()
+    low_trials = ransac(FundamentalModel(low), low, config, generator=torch.Generator().manual_seed(0)).num_trials
+    high_trials = ransac(FundamentalModel(high), high, config, generator=torch.Generator().manual_seed(0)).num_trials
+    assert low_trials < high_trials
+    capped = ransac(FundamentalModel(high), high, dataclasses.replace(config, max_trials=100), generator=torch.Generator().manual_seed(0))
+    assert capped.num_trials.item() <= 100
+
+
+def test_padding_and_too_small_problems():
+    a = synthetic_two_view(100, outlier_ratio=0.3, seed=3)
+    data = torch.zeros(2, 100, 4, dtype=torch.float64)
+    data[0] = torch.cat([a.x1, a.x2], -1)
+    data[1, :5] = torch.cat([a.x1[:5], a.x2[:5]], -1)
+    valid = torch.zeros(2, 100, dtype=torch.bool)
+    valid[0] = True
+    valid[1, :5] = True
+    result = ransac(FundamentalModel(data, valid), data, RansacConfig(), valid=valid, generator=torch.Generator().manual_seed(0))
+    assert result.success.tolist() == [True, False]
+    assert result.num_trials[1] == 0
+    assert torch.equal(result.inlier_mask[0], a.is_inlier)
+    assert not result.inlier_mask[1, 5:].any()
+
+
+def test_same_seed_same_result():
+    data = _data(synthetic_two_view(300, noise=0.5, outlier_ratio=0.4, seed=4))
+    runs = [ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(7)) for _ in range(2)]
+    assert torch.equal(runs[0].model, runs[1].model)
+    assert torch.equal(runs[0].inlier_mask, runs[1].inlier_mask)

@@ -1,0 +1,142 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+import torchsfm
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
+from torchsfm.geometry.fundamental import normalize_scale, symmetric_epipolar_distance
+from torchsfm.testing import mask_recall_precision, rotation_error_deg, synthetic_two_view, translation_direction_error_deg
+
+DOUBLE = dict(dtype=torch.float64)
+
+
+def _generator(seed=0):
+    return torch.Generator().manual_seed(seed)
+
+
+def _aligned(F, truth):
+    F = normalize_scale(F)
+    return F * torch.sign((F * truth).sum())
+
+
+@pytest.mark.parametrize("outlier_ratio", [0.0, 0.3, 0.6])
+def test_fundamental_is_exact_on_noise_free_data(outlier_ratio):
+    scene = synthetic_two_view(300, outlier_ratio=outlier_ratio, seed=1)
+    estimate = torchsfm.estimate_fundamental(scene.x1, scene.x2, generator=_generator())
+    assert_close(_aligned(estimate.F, scene.F), scene.F, rtol=0, atol=1e-8)
+    assert torch.equal(estimate.inlier_mask, scene.is_inlier)
+    assert estimate.F.shape == (3, 3) and estimate.num_trials.dim() == 0
+
+
+@pytest.mark.parametrize("method", ["svd", "linear", "quaternion"])
+def test_relative_pose_is_exact_on_noise_free_data(method):
+    scene = synthetic_two_view(200, outlier_ratio=0.3, seed=2)
+    config = torchsfm.with_overrides(torchsfm.Config(), [f"relative_pose.method={method}"])
+    pose = torchsfm.estimate_relative_pose(scene.x1, scene.x2, scene.K1, scene.K2, config=config, generator=_generator())
+    assert_close(pose.R, scene.R, rtol=0, atol=1e-8)
+    assert_close(pose.t, scene.t, rtol=0, atol=1e-8)
+    assert torch.equal(pose.inlier_mask, scene.is_inlier)
+    assert_close(pose.points3d, scene.points3d[scene.is_inlier], rtol=0, atol=1e-8)
+
+
+def test_noisy_scenes_meet_statistical_bounds():
+    """σ = 0.5 px, 40% outliers, 20 seeds: median errors well below a pixel and a degree."""
+    epipolar, rotation, translation, recall, precision = [], [], [], [], []
+    for seed in range(20):
+        scene = synthetic_two_view(400, noise=0.5, outlier_ratio=0.4, seed=seed)
+        estimate = torchsfm.estimate_fundamental(scene.x1, scene.x2, generator=_generator(seed))
+        epipolar.append(symmetric_epipolar_distance(estimate.F, scene.x1_true, scene.x2_true).median())
+        pose = torchsfm.estimate_relative_pose(scene.x1, scene.x2, scene.K1, scene.K2, generator=_generator(seed))
+        rotation.append(rotation_error_deg(pose.R, scene.R))
+        translation.append(translation_direction_error_deg(pose.t, scene.t))
+        r, p = mask_recall_precision(pose.inlier_mask, scene.is_inlier)
+        recall.append(r)
+        precision.append(p)
+    assert torch.tensor(epipolar).median() < 0.15
+    assert torch.tensor(rotation).median() < 0.1
+    assert torch.tensor(translation).median() < 0.5
+    assert torch.tensor(recall).median() > 0.93  # 1 px threshold on σ = 0.5 px noise keeps ~95%
+    assert torch.tensor(precision).min() > 0.98
+
+
+def test_batched_input_matches_single_problems():
+    scenes = [synthetic_two_view(150, noise=0.3, outlier_ratio=0.3, seed=seed) for seed in (3, 4)]
+    x1 = torch.stack([s.x1 for s in scenes])
+    x2 = torch.stack([s.x2 for s in scenes])
+    K = torch.stack([s.K1 for s in scenes])
+    batched = torchsfm.estimate_relative_pose(x1, x2, K, K, generator=_generator())
+    assert batched.R.shape == (2, 3, 3) and batched.inlier_mask.shape == (2, 150)
+    assert isinstance(batched.points3d, tuple) and len(batched.points3d) == 2
+    for b, scene in enumerate(scenes):
+        assert rotation_error_deg(batched.R[b], scene.R) < 0.2
+        assert batched.points3d[b].shape == (int(batched.inlier_mask[b].sum()), 3)
+
+
+def test_float32_in_float32_out_and_seeded_determinism():
+    scene = synthetic_two_view(200, noise=0.5, outlier_ratio=0.3, seed=5)
+    a = torchsfm.estimate_fundamental(scene.x1.float(), scene.x2.float(), generator=_generator(9))
+    b = torchsfm.estimate_fundamental(scene.x1.float(), scene.x2.float(), generator=_generator(9))
+    assert a.F.dtype == torch.float32
+    assert torch.equal(a.F, b.F) and torch.equal(a.inlier_mask, b.inlier_mask)
+
+
+def test_stages_are_modules():
+    scene = synthetic_two_view(100, seed=6)
+    stage = torchsfm.RelativePoseEstimator()
+    assert isinstance(stage, torch.nn.Module) and "method='svd'" in repr(stage)
+    pose = stage(scene.x1, scene.x2, scene.K1, scene.K2, generator=_generator())
+    assert rotation_error_deg(pose.R, scene.R) < 1e-8
+    assert torchsfm.RobustFundamental()(scene.x1, scene.x2).F.shape == (3, 3)
+
+
+class TestBadInput:
+    scene = synthetic_two_view(20, seed=7)
+
+    def test_wrong_shapes(self):
+        with pytest.raises(ShapeError, match=r"x1 must have shape \(\*, N, 2\)"):
+            torchsfm.estimate_fundamental(self.scene.x1[:, :1], self.scene.x2)
+        with pytest.raises(ShapeError, match="must both be"):
+            torchsfm.estimate_fundamental(self.scene.x1[None, None], self.scene.x2[None, None])
+
+    def test_mismatched_n(self):
+        with pytest.raises(ShapeError, match="x2 has N=19 but x1 has N=20"):
+            torchsfm.estimate_fundamental(self.scene.x1, self.scene.x2[:19])
+
+    def test_fewer_than_eight_points(self):
+        with pytest.raises(NotEnoughDataError, match="at least 8, got 7"):
+            torchsfm.estimate_fundamental(self.scene.x1[:7], self.scene.x2[:7])
+
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+    def test_non_finite_coordinates(self, bad):
+        x1 = self.scene.x1.clone()
+        x1[3, 1] = bad
+        with pytest.raises(InputError, match="x1 holds 1 NaN or infinite"):
+            torchsfm.estimate_fundamental(x1, self.scene.x2)
+
+    def test_integer_coordinates(self):
+        with pytest.raises(InputError, match="floating-point"):
+            torchsfm.estimate_fundamental(self.scene.x1.long(), self.scene.x2.long())
+
+    def test_all_points_identical(self):
+        same = torch.full((20, 2), 100.0, **DOUBLE)
+        with pytest.raises(DegenerateConfigurationError, match="x1 has only 1 distinct point"):
+            torchsfm.estimate_fundamental(same, self.scene.x2)
+
+    def test_singular_or_malformed_K(self):
+        singular = self.scene.K1.clone()
+        singular[1, 1] = 0.0
+        with pytest.raises(DegenerateConfigurationError, match="K2 is singular"):
+            torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x2, self.scene.K1, singular)
+        with pytest.raises(ShapeError, match="K1 must have shape"):
+            torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x2, self.scene.K1[:2], self.scene.K2)
+        with pytest.raises(InputError, match="K1 holds"):
+            torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x2, self.scene.K1 * float("nan"), self.scene.K2)
+
+    def test_pure_noise_never_returns_nan(self):
+        g = _generator(3)
+        x1, x2 = torch.rand(40, 2, generator=g, **DOUBLE) * 500, torch.rand(40, 2, generator=g, **DOUBLE) * 500
+        try:
+            estimate = torchsfm.estimate_fundamental(x1, x2, generator=g)
+        except NotEnoughDataError:
+            return
+        assert torch.isfinite(estimate.F).all()

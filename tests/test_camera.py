@@ -1,0 +1,104 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+from torchsfm.camera import (
+    Camera,
+    camera_center,
+    check_intrinsics,
+    decompose_projection,
+    distort_points,
+    normalized_to_pixels,
+    pixels_to_normalized,
+    project,
+    projection_matrix,
+    undistort_image,
+    undistort_points,
+)
+from torchsfm.errors import DegenerateConfigurationError
+from torchsfm.geometry.rotation import axis_angle_to_rotation
+
+DOUBLE = dict(dtype=torch.float64)
+
+
+def _camera(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[800.0, 0.5, 320.0], [0.0, 780.0, 240.0], [0.0, 0.0, 1.0]], **DOUBLE)
+    R = axis_angle_to_rotation(0.3 * torch.randn(3, generator=g, **DOUBLE))
+    t = torch.randn(3, generator=g, **DOUBLE)
+    return K, R, t
+
+
+def test_projection_centre_and_decomposition_round_trip():
+    K, R, t = _camera()
+    P = projection_matrix(K, R, t)
+    assert_close(camera_center(P), -R.T @ t, rtol=0, atol=1e-12)
+    K2, R2, t2 = decompose_projection(-3.0 * P * -1)  # any positive scale
+    assert_close(K2, K, rtol=0, atol=1e-9)
+    assert_close(R2, R, rtol=0, atol=1e-12)
+    assert_close(t2, t, rtol=0, atol=1e-12)
+
+
+def test_decomposition_keeps_the_sign_of_depth():
+    K, R, t = _camera()
+    K2, R2, t2 = decompose_projection(-projection_matrix(K, R, t))
+    assert_close(K2, K, rtol=0, atol=1e-9)
+    assert torch.linalg.det(R2) < 0  # -P: every depth flips sign, so R is a reflection
+    assert_close(R2, -R, rtol=0, atol=1e-12)
+
+
+def test_camera_dataclass_matches_functions():
+    K, R, t = _camera()
+    X = torch.randn(10, 3, **DOUBLE) + torch.tensor([0, 0, 8.0], **DOUBLE)
+    camera = Camera(K, R, t)
+    assert_close(camera.project(X), project(camera.P, X), rtol=0, atol=1e-9)
+    assert_close(camera.center, camera_center(camera.P), rtol=0, atol=1e-12)
+
+
+def test_normalized_round_trip():
+    K, _, _ = _camera()
+    x = torch.rand(20, 2, **DOUBLE) * 600
+    assert_close(normalized_to_pixels(pixels_to_normalized(x, K), K), x, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("distortion", [(0.0, 0.0), (-0.25, 0.08), (0.1, -0.02), (-0.4, 0.15)])
+def test_distortion_round_trip(distortion):
+    K, _, _ = _camera()
+    coefficients = torch.tensor(distortion, **DOUBLE)
+    x = torch.rand(200, 2, **DOUBLE) * torch.tensor([640.0, 480.0], **DOUBLE)
+    assert_close(undistort_points(distort_points(x, K, coefficients), K, coefficients), x, rtol=0, atol=1e-9)
+
+
+def test_distortion_follows_the_documented_model():
+    K = torch.eye(3, **DOUBLE)
+    x = torch.tensor([[0.3, -0.4]], **DOUBLE)  # r = 0.5
+    distorted = distort_points(x, K, torch.tensor([0.1, 0.2], **DOUBLE))
+    assert_close(distorted, x * (1 + 0.1 * 0.25 + 0.2 * 0.0625), rtol=0, atol=1e-15)
+
+
+def test_camera_projection_applies_distortion():
+    K, R, t = _camera()
+    X = torch.randn(10, 3, **DOUBLE) * 0.5 + torch.tensor([0, 0, 6.0], **DOUBLE)
+    coefficients = torch.tensor([-0.2, 0.05], **DOUBLE)
+    ideal = Camera(K, R, t).project(X)
+    observed = Camera(K, R, t, coefficients).project(X)
+    assert_close(undistort_points(observed, K, coefficients), ideal, rtol=0, atol=1e-9)
+
+
+def test_undistort_image_moves_a_dot_to_its_ideal_position():
+    K = torch.tensor([[200.0, 0, 63.5], [0, 200.0, 47.5], [0, 0, 1]], **DOUBLE)
+    coefficients = torch.tensor([-0.3, 0.0], **DOUBLE)
+    ideal = torch.tensor([[100.0, 80.0]], **DOUBLE)
+    observed = distort_points(ideal, K, coefficients)[0]
+    ys, xs = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+    image = torch.exp(-((xs - observed[0]) ** 2 + (ys - observed[1]) ** 2) / 4.0)[None, None].float()
+    corrected = undistort_image(image, K, coefficients)
+    weights = corrected[0, 0].double()
+    centroid = torch.stack([(weights * xs).sum(), (weights * ys).sum()]) / weights.sum()
+    assert_close(centroid, ideal[0], rtol=0, atol=0.05)
+
+
+def test_singular_intrinsics_are_rejected():
+    K = torch.tensor([[800.0, 0, 320], [0, 0, 240], [0, 0, 1]], **DOUBLE)
+    with pytest.raises(DegenerateConfigurationError, match="K is singular"):
+        check_intrinsics(K=K)

@@ -1,0 +1,43 @@
+import pytest
+import torch
+
+from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
+from torchsfm.validation import add_batch_dim, check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
+
+
+def test_shapes_bind_names_across_arguments():
+    sizes = check_shapes(x1=(torch.zeros(2, 5, 2), "* N 2"), x2=(torch.zeros(2, 5, 2), "* N 2"))
+    assert sizes == {"N": 5}
+    with pytest.raises(ShapeError, match="x2 has N=4 but x1 has N=5"):
+        check_shapes(x1=(torch.zeros(5, 2), "* N 2"), x2=(torch.zeros(4, 2), "* N 2"))
+
+
+def test_shapes_reject_wrong_literal_and_rank():
+    with pytest.raises(ShapeError, match=r"K must have shape \(\*, 3, 3\), got \(3, 4\)"):
+        check_shapes(K=(torch.zeros(3, 4), "* 3 3"))
+    with pytest.raises(ShapeError, match="got \\(3,\\)"):
+        check_shapes(K=(torch.zeros(3), "3 3"))
+    with pytest.raises(InputError, match="torch.Tensor"):
+        check_shapes(K=([[1.0]], "1 1"))
+
+
+def test_finite_floating_and_counts():
+    with pytest.raises(InputError, match="x holds 1 NaN"):
+        check_finite(x=torch.tensor([1.0, float("nan")]))
+    with pytest.raises(InputError, match="floating-point"):
+        check_floating(x=torch.zeros(3, dtype=torch.long))
+    with pytest.raises(NotEnoughDataError, match="needs at least 8, got 7"):
+        check_min_count("x1", 7, 8, "the 8-point algorithm")
+
+
+def test_count_distinct_rows():
+    x = torch.tensor([[1.0, 2.0], [1.0, 2.0], [2.0, 1.0], [1.0, 3.0], [2.0, 1.0]])
+    assert count_distinct_rows(x) == 3
+    assert count_distinct_rows(torch.zeros(0, 2)) == 0
+
+
+def test_add_batch_dim():
+    x, added = add_batch_dim(torch.zeros(5, 2), 2)
+    assert added and x.shape == (1, 5, 2)
+    with pytest.raises(ShapeError):
+        add_batch_dim(torch.zeros(1, 1, 5, 2), 2)

@@ -1,0 +1,1 @@
+"""Multiple-view geometry: normalization, F, E, rotations, triangulation, refinements."""

@@ -1,0 +1,168 @@
+"""The essential matrix and the relative pose it encodes (thesis §3.4, with the ERRATA).
+
+Convention: camera 1 is ``[I | 0]``, camera 2 is ``[R | t]`` (``X2 = R X1 + t``) and
+``E = [t]x R`` so that ``x2ᵀ E x1 = 0`` for normalized coordinates. Three ways from E to the
+four (R, t) candidates are offered, all resolved by the same cheirality test:
+
+* ``svd`` — E = U diag(1, 1, 0) Vᵀ; R ∈ {U W Vᵀ, U Wᵀ Vᵀ}, t = ±u3 (H&Z §9.6.2).
+* ``linear`` — thesis eq. 3.4.10–3.4.11: t̂ from a cross product of E's columns, R column by
+  column; R is projected onto SO(3) at the end (the thesis leaves it raw).
+* ``quaternion`` — thesis eq. 3.4.12–3.4.15: t̂ as the least-squares null vector of Eᵀ (the
+  thesis writes EᵀE; the left null vector of E is what satisfies Eᵀt̂ = 0), then R from the
+  quaternion minimizing ‖Rᵀ[-t̂]x - Eᵀ‖.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import to_homogeneous
+from torchsfm.geometry.rotation import nearest_rotation, quaternion_to_rotation, skew
+
+
+def essential_from_fundamental(F: Tensor, K1: Tensor, K2: Tensor) -> Tensor:
+    """E = K2ᵀ F K1 (the ERRATA's general form of eq. 3.4.1), scaled to ‖E‖_F = sqrt(2)."""
+    E = K2.transpose(-1, -2) @ F @ K1
+    return E * (math.sqrt(2) / E.flatten(-2).norm(dim=-1).clamp_min(1e-300))[..., None, None]
+
+
+def project_to_essential(E: Tensor) -> Tensor:
+    """Nearest essential matrix in Frobenius norm, U diag(1, 1, 0) Vᵀ: (*, 3, 3) -> (*, 3, 3)."""
+    U, _, Vh = torch.linalg.svd(E)
+    return U @ torch.diag(E.new_tensor([1.0, 1.0, 0.0])) @ Vh
+
+
+def essential_from_pose(R: Tensor, t: Tensor) -> Tensor:
+    """E = [t]x R: (*, 3, 3), (*, 3) -> (*, 3, 3)."""
+    return skew(t) @ R
+
+
+def _proper(U: Tensor) -> Tensor:
+    """Flip the sign of an orthogonal matrix with det -1 so it becomes a rotation."""
+    return U * torch.sign(torch.linalg.det(U))[..., None, None]
+
+
+def pose_candidates_svd(E: Tensor) -> tuple[Tensor, Tensor]:
+    """The four (R, t) of E by SVD: (*, 3, 3) -> R (*, 4, 3, 3), unit t (*, 4, 3)."""
+    U, _, Vh = torch.linalg.svd(E)
+    U, Vh = _proper(U), _proper(Vh)
+    W = E.new_tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    Ra, Rb = U @ W @ Vh, U @ W.transpose(-1, -2) @ Vh
+    t = U[..., :, 2]
+    return torch.stack([Ra, Ra, Rb, Rb], dim=-3), torch.stack([t, -t, t, -t], dim=-2)
+
+
+def pose_candidates_linear(E: Tensor) -> tuple[Tensor, Tensor]:
+    """The four (R, t) of eq. 3.4.10–3.4.11 (signs of E and t̂): -> (*, 4, 3, 3), (*, 4, 3).
+
+    t̂ is taken from the pair of columns with the largest cross product (the best conditioned
+    choice among i ≠ j); each R is projected to the nearest rotation.
+    """
+    def one(E: Tensor, t_sign: float) -> tuple[Tensor, Tensor]:
+        e = E.transpose(-1, -2)  # rows are the columns e1, e2, e3
+        crosses = torch.stack([torch.linalg.cross(e[..., 0, :], e[..., 1, :]),
+                               torch.linalg.cross(e[..., 1, :], e[..., 2, :]),
+                               torch.linalg.cross(e[..., 2, :], e[..., 0, :])], dim=-2)
+        best = crosses.norm(dim=-1).argmax(-1)
+        cross = torch.gather(crosses, -2, best[..., None, None].expand(*best.shape, 1, 3)).squeeze(-2)
+        t = t_sign * cross / cross.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        k = torch.sqrt(0.5 * E.square().sum(dim=(-2, -1)))[..., None]
+        columns = []
+        for i in range(3):
+            ej, ek = e[..., (i + 1) % 3, :], e[..., (i + 2) % 3, :]
+            along_t = (t * torch.linalg.cross(ej, ek)).sum(-1, keepdim=True) / (k * k)
+            columns.append(along_t * t + torch.linalg.cross(e[..., i, :], t) / k)
+        return nearest_rotation(torch.stack(columns, dim=-1)), t
+
+    candidates = [one(sign_E * E, sign_t) for sign_E in (1.0, -1.0) for sign_t in (1.0, -1.0)]
+    return torch.stack([c[0] for c in candidates], dim=-3), torch.stack([c[1] for c in candidates], dim=-2)
+
+
+def _quaternion_rotation(C: Tensor, D: Tensor) -> Tensor:
+    """Rotation Q minimizing Σ‖Q cᵢ - dᵢ‖² over the columns of C, D (eq. 3.4.14): (*, 3, 3)."""
+    B_total = torch.zeros(*C.shape[:-2], 4, 4, dtype=C.dtype, device=C.device)
+    for i in range(3):
+        c, d = C[..., :, i], D[..., :, i]
+        top = torch.cat([torch.zeros_like(c[..., :1]), (c - d)], dim=-1)[..., None, :]  # (*, 1, 4)
+        bottom = torch.cat([(d - c)[..., :, None], skew(d + c)], dim=-1)  # (*, 3, 4)
+        B_i = torch.cat([top, bottom], dim=-2)
+        B_total = B_total + B_i.transpose(-1, -2) @ B_i
+    _, vectors = torch.linalg.eigh(B_total)
+    return quaternion_to_rotation(vectors[..., 0])
+
+
+def pose_candidates_quaternion(E: Tensor) -> tuple[Tensor, Tensor]:
+    """The four (R, t) of eq. 3.4.12–3.4.15 (signs of E and t̂): -> (*, 4, 3, 3), (*, 4, 3)."""
+    _, vectors = torch.linalg.eigh(E @ E.transpose(-1, -2))
+    t0 = vectors[..., 0]  # unit, minimizes ‖Eᵀ t‖
+    Rs, ts = [], []
+    for sign_E in (1.0, -1.0):
+        for sign_t in (1.0, -1.0):
+            t = sign_t * t0
+            Q = _quaternion_rotation(skew(-t), sign_E * E.transpose(-1, -2))  # Q [-t]x ≈ Eᵀ, Q = Rᵀ
+            Rs.append(Q.transpose(-1, -2))
+            ts.append(t)
+    return torch.stack(Rs, dim=-3), torch.stack(ts, dim=-2)
+
+
+POSE_CANDIDATES = {
+    "svd": pose_candidates_svd,
+    "linear": pose_candidates_linear,
+    "quaternion": pose_candidates_quaternion,
+}
+
+
+def two_view_depths(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:
+    """Depths (λ1, λ2) with λ2 x̃2 ≈ λ1 R x̃1 + t, in closed form (cross products with x̃2, R x̃1).
+
+    R (*, 3, 3), t (*, 3), normalized points x1, x2 (*, N, 2) -> two (*, N). A point is in front
+    of both cameras when both depths are positive.
+    """
+    h1, h2 = to_homogeneous(x1), to_homogeneous(x2)
+    rotated = h1 @ R.transpose(-1, -2)  # (*, N, 3): R x̃1
+    t = t[..., None, :].expand_as(rotated)
+    x2_cross_rotated = torch.linalg.cross(h2, rotated)
+    depth1 = -(x2_cross_rotated * torch.linalg.cross(h2, t)).sum(-1) / x2_cross_rotated.square().sum(-1).clamp_min(1e-300)
+    depth2 = (x2_cross_rotated * torch.linalg.cross(t, rotated)).sum(-1) / x2_cross_rotated.square().sum(-1).clamp_min(1e-300)
+    return depth1, depth2
+
+
+def cheirality_counts(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Number of points in front of both cameras for each candidate pose.
+
+    Args:
+        R, t: candidates (*, C, 3, 3), (*, C, 3).
+        x1, x2: normalized correspondences (*, N, 2).
+        weights: optional (*, N) 0/1 mask.
+
+    Returns:
+        (*, C) counts (as floats).
+    """
+    depth1, depth2 = two_view_depths(R, t, x1[..., None, :, :], x2[..., None, :, :])  # (*, C, N)
+    in_front = ((depth1 > 0) & (depth2 > 0)).to(R.dtype)
+    if weights is not None:
+        in_front = in_front * weights[..., None, :]
+    return in_front.sum(-1)
+
+
+def select_pose(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Keep the candidate with the most points in front of both cameras.
+
+    Returns R (*, 3, 3), t (*, 3) and the fraction (*,) of (weighted) points in front.
+    """
+    counts = cheirality_counts(R, t, x1, x2, weights)
+    best = counts.argmax(-1)
+    R_best = torch.gather(R, -3, best[..., None, None, None].expand(*best.shape, 1, 3, 3)).squeeze(-3)
+    t_best = torch.gather(t, -2, best[..., None, None].expand(*best.shape, 1, 3)).squeeze(-2)
+    total = weights.sum(-1) if weights is not None else torch.full_like(counts[..., 0], x1.shape[-2])
+    return R_best, t_best, counts.amax(-1) / total.clamp_min(1)
+
+
+def normalized_projections(R: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+    """([I | 0], [R | t]) for normalized coordinates: (*, 3, 4) each."""
+    P1 = torch.eye(3, 4, dtype=R.dtype, device=R.device).expand(*R.shape[:-2], 3, 4)
+    return P1, torch.cat([R, t[..., None]], dim=-1)
+

@@ -1,0 +1,211 @@
+"""The fundamental matrix: normalized 8-point algorithm, rank-2 enforcement and error measures.
+
+Convention: ``x2ᵀ F x1 = 0`` for a correspondence x1 (image 1) ↔ x2 (image 2), both in pixels.
+Every function broadcasts over leading dimensions, so F (B, K, 3, 3) against points
+(B, 1, N, 2) scores K hypotheses of B problems at once.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import to_homogeneous
+from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.geometry.rotation import skew
+from torchsfm.geometry.small_linalg import smallest_eigenvector_sym3
+
+
+def enforce_rank2(F: Tensor) -> Tensor:
+    """Nearest rank-2 matrix in Frobenius norm (eq. 3.3.5): (*, 3, 3) -> (*, 3, 3)."""
+    U, S, Vh = torch.linalg.svd(F)
+    S = torch.cat([S[..., :2], torch.zeros_like(S[..., 2:])], dim=-1)
+    return U @ torch.diag_embed(S) @ Vh
+
+
+def normalize_scale(F: Tensor) -> Tensor:
+    """Scale a homogeneous 3x3 matrix to unit Frobenius norm: (*, 3, 3)."""
+    return F / F.flatten(-2).norm(dim=-1).clamp_min(1e-300)[..., None, None]
+
+
+def epipolar_design_matrix(x1: Tensor, x2: Tensor) -> Tensor:
+    """Rows ``u`` of eq. 3.3.3 with ``uᵀ f = x2ᵀ F x1`` for row-major f: (*, N, 2) x2 -> (*, N, 9)."""
+    u1, v1 = x1.unbind(-1)
+    u2, v2 = x2.unbind(-1)
+    one = torch.ones_like(u1)
+    return torch.stack([u2 * u1, u2 * v1, u2, v2 * u1, v2 * v1, v2, u1, v1, one], dim=-1)
+
+
+def smallest_right_singular_vector(A: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Unit f minimizing ‖diag(w)^½ A f‖: A (*, N, M), weights (*, N) -> (*, M).
+
+    Solved as the eigenvector of the smallest eigenvalue of AᵀWA, which batches cheaply; callers
+    normalize their data first (Hartley), which keeps AᵀWA well conditioned in float64.
+    """
+    if weights is not None:
+        A_weighted = A * weights[..., None]
+    else:
+        A_weighted = A
+    _, vectors = torch.linalg.eigh(A_weighted.transpose(-1, -2) @ A)
+    return vectors[..., 0]
+
+
+def eight_point(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Normalized 8-point algorithm with rank-2 enforcement (Alg. 3.3.2).
+
+    Args:
+        x1, x2: pixel correspondences (*, N, 2), N >= 8 points of non-zero weight.
+        weights: optional (*, N) weights; 0 drops a point (outliers, padding), so one call fits
+            minimal samples and inlier sets alike.
+
+    Returns:
+        F (*, 3, 3) of unit Frobenius norm with ``x2ᵀ F x1 ≈ 0``.
+    """
+    n1, T1 = hartley_normalize(x1, weights)
+    n2, T2 = hartley_normalize(x2, weights)
+    f = smallest_right_singular_vector(epipolar_design_matrix(n1, n2), weights)
+    F = enforce_rank2(f.reshape(*f.shape[:-1], 3, 3))
+    return normalize_scale(T2.transpose(-1, -2) @ F @ T1)
+
+
+# A fixed generic row appended to an 8x9 design matrix makes the null vector the solution of a
+# square system; it only fails if the null vector is orthogonal to it (measure zero).
+_GAUGE_ROW = (0.31, 0.53, 0.71, 0.17, 0.43, 0.89, 0.61, 0.23, 0.97)
+
+
+def minimal_null_vectors(x1: Tensor, x2: Tensor, A1: Tensor, A2: Tensor) -> Tensor:
+    """Epipolar matrices G of 8-point minimal samples in conditioned coordinates, unconstrained.
+
+    The points are mapped by affine conditioning maps A1, A2 (Hartley's, computed once on all
+    correspondences of the problem, so each sample costs an affine map rather than its own
+    statistics); G satisfies (A2 x2)ᵀ G (A1 x1) = 0 on the sample. The null vector comes from one
+    9x9 LU solve (the design matrix plus a fixed generic gauge row), which batches far better
+    than an SVD per sample.
+
+    Args:
+        x1, x2: (B, K, 8, 2) pixel samples.
+        A1, A2: (B, 3, 3) affine conditioning maps of image 1 and 2 (last row 0, 0, 1).
+
+    Returns:
+        (B, K, 3, 3) G, NaN for a degenerate sample.
+    """
+    def condition(x: Tensor, A: Tensor) -> Tensor:
+        return x @ A[:, None, :2, :2].transpose(-1, -2) + A[:, None, None, :2, 2]
+
+    design = epipolar_design_matrix(condition(x1, A1), condition(x2, A2))  # (B, K, 8, 9)
+    gauge = design.new_tensor(_GAUGE_ROW).expand(*design.shape[:-2], 1, 9)
+    rhs = design.new_zeros(*design.shape[:-2], 9, 1)
+    rhs[..., 8, 0] = 1.0
+    f, info = torch.linalg.solve_ex(torch.cat([design, gauge], dim=-2), rhs)
+    return torch.where((info == 0)[..., None, None], f, torch.nan).reshape(*f.shape[:-2], 3, 3)
+
+
+def eight_point_minimal(x1: Tensor, x2: Tensor, T1: Tensor, T2: Tensor) -> Tensor:
+    """The normalized 8-point algorithm on (B, K, 8, 2) samples, built for RANSAC batches.
+
+    Rank 2 is enforced in the normalized frame as ``G - (G v) vᵀ`` with v the closed-form
+    smallest right singular vector (same result as the SVD truncation of eq. 3.3.5).
+    T1, T2 (B, 3, 3) are Hartley normalizations; returns F (B, K, 3, 3) in pixels, unit norm.
+    """
+    G = minimal_null_vectors(x1, x2, T1, T2)
+    v = smallest_eigenvector_sym3(G.transpose(-1, -2) @ G)
+    G = G - (G @ v[..., None]) @ v[..., None, :]
+    return normalize_scale(T2[:, None].transpose(-1, -2) @ G @ T1[:, None])
+
+
+def _epipolar_terms(F: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(x2ᵀ F x1 (*, N), F x1 (*, 3, N), Fᵀ x2 (*, 3, N)) for broadcast F (*, 3, 3), points (*, N, 2).
+
+    Lines are kept coordinate-major so that scoring K hypotheses is one batched GEMM each.
+    """
+    h1, h2 = to_homogeneous(x1).transpose(-1, -2), to_homogeneous(x2).transpose(-1, -2)  # (*, 3, N)
+    line2 = F @ h1  # epipolar lines in image 2
+    line1 = F.transpose(-1, -2) @ h2  # epipolar lines in image 1
+    algebraic = (h2 * line2).sum(-2)
+    return algebraic, line2, line1
+
+
+def sampson_residual(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Signed Sampson residual (pixels); its square is the Sampson error of eq. 3.3.6: (*, N)."""
+    algebraic, line2, line1 = _epipolar_terms(F, x1, x2)
+    denominator = line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)
+    return algebraic / denominator.clamp_min(1e-300).sqrt()
+
+
+def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Derivative of :func:`sampson_residual` with respect to the entries of F (row-major).
+
+    F (B, 3, 3), x1, x2 (B, N, 2) -> (B, N, 9). With a = x2ᵀFx1 and
+    d = (Fx1)₁² + (Fx1)₂² + (Fᵀx2)₁² + (Fᵀx2)₂²: dr/dF = da/dF / √d - a dd/dF / (2 d^{3/2}).
+    """
+    algebraic, line2, line1 = _epipolar_terms(F, x1, x2)  # (B, N), (B, 3, N), (B, 3, N)
+    h1, h2 = to_homogeneous(x1), to_homogeneous(x2)  # (B, N, 3)
+    denominator = (line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)).clamp_min(1e-300)
+    d_algebraic = h2[..., :, None] * h1[..., None, :]  # (B, N, 3, 3): d a / d F_ab = h2_a h1_b
+    first_two = torch.tensor([1.0, 1.0, 0.0], dtype=F.dtype, device=F.device)
+    # d d / d F_ab = 2 (F h1)_a h1_b [a < 2] + 2 (Fᵀ h2)_b h2_a [b < 2]
+    d_denominator = 2 * ((line2.transpose(-1, -2) * first_two)[..., :, None] * h1[..., None, :]
+                         + h2[..., :, None] * (line1.transpose(-1, -2) * first_two)[..., None, :])
+    root = denominator.sqrt()[..., None, None]
+    jacobian = d_algebraic / root - (algebraic[..., None, None] / (2 * root**3)) * d_denominator
+    return jacobian.reshape(*jacobian.shape[:-2], 9)
+
+
+def sampson_error(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Sampson error of eq. 3.3.6 (pixels²), F (*, 3, 3), x1, x2 (*, N, 2) -> (*, N)."""
+    return sampson_residual(F, x1, x2).square()
+
+
+def sampson_error_of_hypotheses(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Sampson error (pixels²) of H hypotheses on the same points, as two GEMMs per problem.
+
+    F (B, H, 3, 3), x1, x2 (B, N, 2) -> (B, H, N); computed in the dtype of the inputs. The
+    algebraic error is (x2 ⊗ x1)·vec(F) and the four line components are one (N, 6) x (6, 4H)
+    product, so the cost is dominated by two matrix products instead of per-hypothesis
+    broadcasting.
+    """
+    B, H = F.shape[:2]
+    N = x1.shape[-2]
+    h1, h2 = to_homogeneous(x1), to_homogeneous(x2)  # (B, N, 3)
+    outer = (h2[..., :, None] * h1[..., None, :]).reshape(B, N, 9)
+    algebraic = outer @ F.reshape(B, H, 9).transpose(-1, -2)  # (B, N, H)
+    weights = F.new_zeros(B, 6, 4, H)  # lines[k] = [h1 | h2] @ weights[:, :, k]
+    weights[:, :3, 0] = F[:, :, 0, :].transpose(1, 2)  # row 0 of F on h1
+    weights[:, :3, 1] = F[:, :, 1, :].transpose(1, 2)  # row 1 of F on h1
+    weights[:, 3:, 2] = F[:, :, :, 0].transpose(1, 2)  # column 0 of F on h2
+    weights[:, 3:, 3] = F[:, :, :, 1].transpose(1, 2)  # column 1 of F on h2
+    weights = weights.reshape(B, 6, 4 * H)
+    lines = (torch.cat([h1, h2], dim=-1) @ weights).reshape(B, N, 4, H)
+    return (algebraic.square() / lines.square().sum(-2).clamp_min(1e-30)).transpose(-1, -2)
+
+
+def epipolar_line_distances(F: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:
+    """Distances (pixels) of x1 to its epipolar line Fᵀx2 and of x2 to F x1: two (*, N)."""
+    algebraic, line2, line1 = _epipolar_terms(F, x1, x2)
+    d1 = algebraic.abs() / line1[..., :2, :].norm(dim=-2).clamp_min(1e-300)
+    d2 = algebraic.abs() / line2[..., :2, :].norm(dim=-2).clamp_min(1e-300)
+    return d1, d2
+
+
+def symmetric_epipolar_distance(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Root mean square of the two point-to-epipolar-line distances, in pixels: (*, N).
+
+    ``sqrt((d(x1, Fᵀx2)² + d(x2, F x1)²) / 2)``, so a value of 1 px means each point lies about
+    1 px from its epipolar line.
+    """
+    d1, d2 = epipolar_line_distances(F, x1, x2)
+    return ((d1.square() + d2.square()) / 2).sqrt()
+
+
+def fundamental_from_projections(P1: Tensor, P2: Tensor) -> Tensor:
+    """F = [e2]x P2 P1⁺ with e2 = P2 C1 (H&Z eq. 9.1): (*, 3, 4) x2 -> (*, 3, 3), unit norm."""
+    _, _, Vh = torch.linalg.svd(P1)
+    C1 = Vh[..., -1, :]  # (*, 4): right null vector of P1
+    e2 = (P2 @ C1[..., None]).squeeze(-1)
+    return normalize_scale(skew(e2) @ P2 @ torch.linalg.pinv(P1))
+
+
+def fundamental_from_pose(K1: Tensor, K2: Tensor, R: Tensor, t: Tensor) -> Tensor:
+    """F = K2⁻ᵀ [t]x R K1⁻¹ for camera 2 = [R | t] relative to camera 1: (*, 3, 3), unit norm."""
+    E = skew(t) @ R
+    return normalize_scale(torch.linalg.inv(K2).transpose(-1, -2) @ E @ torch.linalg.inv(K1))

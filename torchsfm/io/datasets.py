@@ -1,0 +1,90 @@
+"""Readers for the ground-truth data sets in ``../shared/data`` (formats in each PROVENANCE.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import decompose_projection
+from torchsfm.errors import InputError
+
+
+def _read_matrix(path: Path) -> Tensor:
+    """Whitespace-separated numbers, one row per line -> float64 (rows, columns)."""
+    try:
+        rows = [[float(value) for value in line.split()] for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError) as error:
+        raise InputError(f"cannot read numeric table {path}: {error}") from None
+    return torch.tensor(rows, dtype=torch.float64)
+
+
+def _read_tracks(path: Path) -> Tensor:
+    """Oxford n-view match table: one row per 3-D point, '*' for unseen -> int64 (M, V), -1 unseen."""
+    try:
+        rows = [[-1 if value == "*" else int(value) for value in line.split()] for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError) as error:
+        raise InputError(f"cannot read match table {path}: {error}") from None
+    return torch.tensor(rows, dtype=torch.long)
+
+
+@dataclass
+class OxfordMultiView:
+    """An Oxford VGG multi-view data set (Model House, Merton College I, ...).
+
+    Fields:
+        P: (V, 3, 4) ground-truth cameras (pixels; x ~ P [X; 1]).
+        corners: V tensors (n_v, 2) of corner positions (pixels, top-left pixel centre = (0, 0)).
+        tracks: (M, V) int64 corner index of 3-D point m in view v, -1 where unseen.
+        points3d: (M, 3) ground-truth 3-D points.
+        images: image paths (empty where the set ships none).
+    """
+
+    P: Tensor
+    corners: list[Tensor]
+    tracks: Tensor
+    points3d: Tensor
+    images: list[Path]
+
+    @property
+    def num_views(self) -> int:
+        return self.P.shape[0]
+
+    def cameras(self) -> tuple[Tensor, Tensor, Tensor]:
+        """K (V, 3, 3), R (V, 3, 3), t (V, 3) decomposed from P (see
+        :func:`~torchsfm.camera.decompose_projection`; Model House's frame is mirrored, det R = -1)."""
+        return decompose_projection(self.P)
+
+    def relative_pose(self, i: int, j: int) -> tuple[Tensor, Tensor]:
+        """Ground-truth pose of view j relative to view i: proper rotation (3, 3), unit t (3,)."""
+        _, R, t = self.cameras()
+        R_relative = R[j] @ R[i].transpose(-1, -2)
+        t_relative = t[j] - R_relative @ t[i]
+        return R_relative, t_relative / t_relative.norm()
+
+    def correspondences(self, i: int, j: int) -> tuple[Tensor, Tensor]:
+        """Ground-truth matches between views i and j: two (K, 2) pixel tensors."""
+        both = (self.tracks[:, i] >= 0) & (self.tracks[:, j] >= 0)
+        return self.corners[i][self.tracks[both, i]], self.corners[j][self.tracks[both, j]]
+
+
+def read_oxford_multiview(folder: str | Path) -> OxfordMultiView:
+    """Read an Oxford VGG multi-view folder (``2D/*.corners``, ``*.P`` in 2D/ or 3D/,
+    ``2D/*nview-corners``, ``3D/*p3d``, optional ``images/``)."""
+    folder = Path(folder)
+    corner_files = sorted((folder / "2D").glob("*.corners"))
+    P_files = sorted(folder.glob("[23]D/*.P"))
+    track_files = sorted((folder / "2D").glob("*nview-corners"))
+    point_files = sorted((folder / "3D").glob("*p3d"))
+    if not corner_files or len(P_files) != len(corner_files) or len(track_files) != 1 or len(point_files) != 1:
+        raise InputError(f"{folder} is not an Oxford VGG multi-view folder (need 2D/*.corners, *.P per view, "
+                         "2D/*nview-corners, 3D/*p3d)")
+    return OxfordMultiView(
+        P=torch.stack([_read_matrix(path) for path in P_files]),
+        corners=[_read_matrix(path) for path in corner_files],
+        tracks=_read_tracks(track_files[0]),
+        points3d=_read_matrix(point_files[0]),
+        images=sorted((folder / "images").glob("*.jpg")),
+    )

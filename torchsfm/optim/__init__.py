@@ -1,0 +1,1 @@
+"""Non-linear least squares: the one batched Levenberg–Marquardt."""

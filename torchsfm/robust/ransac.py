@@ -1,0 +1,190 @@
+"""The one RANSAC engine of torchsfm (thesis §3.3.3, Alg. 3.3.3), batched over problems.
+
+Models plug in through the :class:`RobustModel` protocol (minimal fit, weighted fit, residuals),
+samplers and scoring rules through registries. Each round draws a whole batch of minimal samples
+for every problem, fits and scores them as tensors, and keeps each problem's best model; the
+adaptive trial count of eq. 3.3.7 is then updated per problem from its best inlier ratio and a
+problem stops once it has drawn enough samples (or hit ``max_trials``). The only host
+synchronisation is one scalar per round.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import RansacConfig
+from torchsfm.robust.samplers import SAMPLERS, UniformSampler
+
+
+class RobustModel(Protocol):
+    """What a model must provide to be estimated by :func:`ransac`.
+
+    Data are rows of a (B, N, D) tensor (e.g. D = 4 for a correspondence x1 ↔ x2). Model
+    parameters have any trailing shape M (e.g. (3, 3) for F).
+    """
+
+    sample_size: int
+
+    def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        """(B, K, s, D) minimal samples -> models (B, H, *M) and validity (B, H); H = K × solutions."""
+
+    def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
+        """Non-minimal fit on (B, N, D) with (B, N) weights -> (B, *M)."""
+
+    def residuals(self, models: Tensor, data: Tensor) -> Tensor:
+        """Squared residuals (B, H, N) of models (B, H, *M), in the threshold's unit squared."""
+
+    def sampling_coordinates(self, data: Tensor) -> Tensor:
+        """(B, N, 2) image positions the bucketed sampler uses."""
+
+
+def inlier_count_score(squared_residuals: Tensor, inliers: Tensor, threshold_sq: float) -> Tensor:
+    """Number of inliers (thesis): (B, H, N) -> (B, H)."""
+    return inliers.sum(-1).to(squared_residuals.dtype)
+
+
+def msac_score(squared_residuals: Tensor, inliers: Tensor, threshold_sq: float) -> Tensor:
+    """Negated truncated quadratic loss (Torr & Zisserman 2000): (B, H, N) -> (B, H), higher is better."""
+    loss = torch.where(inliers, squared_residuals, torch.full_like(squared_residuals, threshold_sq))
+    return -loss.sum(-1)
+
+
+SCORINGS = {"inlier_count": inlier_count_score, "msac": msac_score}
+
+
+@dataclass
+class RansacResult:
+    """Outcome of :func:`ransac` for B problems.
+
+    Fields:
+        model: (B, *M) best model (refined on its inliers when ``local_refits`` > 0).
+        inlier_mask: (B, N) bool, residual below the threshold under ``model``.
+        num_trials: (B,) int64, minimal samples drawn.
+        success: (B,) bool, a model with at least ``sample_size`` inliers was found.
+    """
+
+    model: Tensor
+    inlier_mask: Tensor
+    num_trials: Tensor
+    success: Tensor
+
+
+def required_trials(inlier_ratio: Tensor, sample_size: int, confidence: float, max_trials: int) -> Tensor:
+    """Trials needed by eq. 3.3.7, N = log(1 - p) / log(1 - w^s), clamped to [1, max_trials]: (B,)."""
+    good_sample = inlier_ratio.double().clamp(0, 1) ** sample_size
+    needed = math.log(1 - confidence) / torch.log1p(-good_sample.clamp_max(1 - 1e-16))
+    needed = torch.where(good_sample > 0, needed, torch.full_like(needed, float(max_trials)))
+    return needed.ceil().clamp(1, max_trials).long()
+
+
+def ransac(
+    model: RobustModel,
+    data: Tensor,
+    config: RansacConfig,
+    *,
+    valid: Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> RansacResult:
+    """Robustly fit ``model`` to each of B point sets.
+
+    Each round draws a batch of minimal samples per problem (the batch grows from 32 to
+    ``hypotheses_per_round``), fits them, and scores them. With ``preemptive_points`` > 0 every
+    hypothesis is first scored on a random subset of that many points and only the best
+    ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
+    problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
+    while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
+    sees the inlier ratio of a refined model.
+
+    Args:
+        model: the estimator plug-in (see :class:`RobustModel`).
+        data: (B, N, D) rows, one problem per batch entry.
+        config: threshold, confidence, trial cap, sampler, scoring, refits, preemption.
+        valid: optional (B, N) bool; False rows are padding and never sampled nor counted.
+        generator: source of all random draws (seed it for reproducible results).
+
+    Returns:
+        A :class:`RansacResult`; problems with fewer than ``sample_size`` valid rows report
+        ``success = False`` and zero trials.
+    """
+    B, N, D = data.shape
+    s = model.sample_size
+    device = data.device
+    if valid is None:
+        valid = torch.ones(B, N, dtype=torch.bool, device=device)
+    num_valid = valid.sum(-1)
+    threshold_sq = config.inlier_threshold**2
+    score_fn = SCORINGS[config.scoring]
+    sampler = SAMPLERS[config.sampler](model.sampling_coordinates(data), valid, config.grid_size)
+    preemptive = 0 < config.preemptive_points < N
+    subset_sampler = UniformSampler(data, valid) if preemptive else None
+    batch = torch.arange(B, device=device)
+
+    def evaluate(models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor) -> tuple[Tensor, Tensor]:
+        residuals = torch.nan_to_num(model.residuals(models, rows), nan=float("inf"))  # (B, H, N)
+        inliers = (residuals < threshold_sq) & rows_valid[:, None, :] & ok[..., None]
+        score = torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf"))
+        return score, inliers.sum(-1)
+
+    best_model: Tensor | None = None
+    best_score = torch.full((B,), float("-inf"), device=device)
+    best_count = torch.zeros(B, dtype=torch.long, device=device)
+    trials = torch.zeros(B, dtype=torch.long, device=device)
+    needed = torch.full((B,), config.max_trials, dtype=torch.long, device=device)
+    active = num_valid >= s
+    round_size = min(32, config.hypotheses_per_round)
+    while True:
+        remaining = int(torch.where(active, needed - trials, 0).max()) if B else 0
+        if remaining <= 0:
+            break
+        num_samples = min(remaining, round_size)
+        round_size = min(2 * round_size, config.hypotheses_per_round)
+        indices = sampler.sample(num_samples, s, generator)  # (B, K, s)
+        samples = torch.gather(data[:, None].expand(B, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))
+        models, ok = model.fit_minimal(samples)  # (B, H, *M), (B, H)
+        if preemptive and models.shape[1] > 1:
+            subset = subset_sampler.sample(1, config.preemptive_points, generator)[:, 0]  # (B, m)
+            rows = torch.gather(data, 1, subset[..., None].expand(B, subset.shape[1], D))
+            partial, _ = evaluate(models, ok, rows, torch.gather(valid, 1, subset))
+            keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
+            models, ok = models[batch[:, None], keep], ok[batch[:, None], keep]
+        score, count = evaluate(models, ok, data, valid)
+        round_score, round_best = score.max(dim=1)
+        improved = active & (round_score > best_score)
+        chosen = models[batch, round_best]
+        best_model = chosen if best_model is None else _where_batch(improved, chosen, best_model)
+        best_score = torch.where(improved, round_score, best_score)
+        best_count = torch.where(improved, count[batch, round_best], best_count)
+        for _ in range(config.local_refits if bool(improved.any()) else 0):
+            inliers = _inliers(model, best_model, data, valid, threshold_sq)
+            refit = model.fit_weighted(data, inliers.to(data.dtype))
+            score, count = evaluate(refit[:, None], (improved & (best_count >= s))[:, None], data, valid)
+            better = improved & (score[:, 0] >= best_score)
+            best_model = _where_batch(better, refit, best_model)
+            best_score = torch.where(better, score[:, 0], best_score)
+            best_count = torch.where(better, count[:, 0], best_count)
+        trials = trials + torch.where(active, num_samples, 0)
+        ratio = best_count.double() / num_valid.clamp_min(1).double()
+        needed = required_trials(ratio, s, config.confidence, config.max_trials)
+        active = active & (trials < needed)
+
+    if best_model is None:  # no problem had enough valid rows: a placeholder of the right shape
+        best_model = model.fit_weighted(data, valid.to(data.dtype))
+    inlier_mask = _inliers(model, best_model, data, valid, threshold_sq)
+    success = inlier_mask.sum(-1) >= s
+    return RansacResult(model=best_model, inlier_mask=inlier_mask, num_trials=trials, success=success)
+
+
+def _inliers(model: RobustModel, models: Tensor, data: Tensor, valid: Tensor, threshold_sq: float) -> Tensor:
+    """(B, N) inlier mask of one model per problem."""
+    residuals = torch.nan_to_num(model.residuals(models[:, None], data)[:, 0], nan=float("inf"))
+    return (residuals < threshold_sq) & valid
+
+
+def _where_batch(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """Per-problem choice between two (B, *M) tensors by a (B,) mask."""
+    return torch.where(condition.reshape(-1, *([1] * (a.dim() - 1))), a, b)

@@ -1,0 +1,90 @@
+"""Minimal-sample generators for the RANSAC engine, batched over problems and hypotheses.
+
+A sampler is built once per RANSAC call from the points' image coordinates and validity mask and
+then asked for ``(B, K, s)`` index tensors: K samples of s distinct valid points per problem.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _weighted_top_k(weights: Tensor, k: int, generator: torch.Generator | None) -> Tensor:
+    """Indices of k draws without replacement, each ∝ its weight among the remaining.
+
+    Efraimidis & Spirakis (2006): keep the k largest keys log(u) / w, u ~ U(0, 1); a zero
+    weight gets key -inf and is never drawn while others remain. weights (*, M) -> (*, k).
+    """
+    u = torch.rand(weights.shape, generator=generator, dtype=torch.float32, device=weights.device)
+    return torch.topk(torch.log(u.clamp_min(1e-30)) / weights, k, dim=-1).indices
+
+
+class UniformSampler:
+    """Every valid point equally likely; s distinct points per sample.
+
+    Args:
+        coordinates: (B, N, 2) point positions (unused, kept for a common signature).
+        valid: (B, N) bool, False for padding.
+    """
+
+    def __init__(self, coordinates: Tensor, valid: Tensor, grid_size: int = 8) -> None:
+        self.weights = valid.float()  # (B, N)
+
+    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None) -> Tensor:
+        """(B, num_samples, sample_size) indices of distinct valid points."""
+        B, N = self.weights.shape
+        return _weighted_top_k(self.weights[:, None, :].expand(B, num_samples, N), sample_size, generator)
+
+
+class BucketedSampler:
+    """Bucketed sampling of thesis §3.3.3 (after Zhang et al. 1995).
+
+    The bounding box of each problem's points is cut into ``grid_size`` × ``grid_size`` buckets.
+    A sample draws ``s`` distinct buckets, each with probability proportional to its point count
+    among the buckets not yet drawn (the thesis' interval mapping, repeated until the buckets are
+    distinct), then one point uniformly from each chosen bucket. Problems with fewer than ``s``
+    occupied buckets fall back to uniform sampling.
+
+    Args:
+        coordinates: (B, N, 2) image positions used for bucketing (pixels).
+        valid: (B, N) bool, False for padding.
+        grid_size: buckets per image side (thesis: 8).
+    """
+
+    def __init__(self, coordinates: Tensor, valid: Tensor, grid_size: int = 8) -> None:
+        B, N, _ = coordinates.shape
+        coordinates = coordinates.float()
+        large = torch.finfo(coordinates.dtype).max
+        low = torch.where(valid[..., None], coordinates, large).amin(dim=1, keepdim=True)  # (B, 1, 2)
+        high = torch.where(valid[..., None], coordinates, -large).amax(dim=1, keepdim=True)
+        extent = (high - low).clamp_min(1e-12)
+        cell = ((coordinates - low) / extent * grid_size).floor().long().clamp(0, grid_size - 1)  # (B, N, 2)
+        num_buckets = grid_size * grid_size
+        bucket = torch.where(valid, cell[..., 1] * grid_size + cell[..., 0], num_buckets)  # (B, N)
+        counts = torch.zeros(B, num_buckets + 1, dtype=torch.long, device=coordinates.device)
+        counts.scatter_add_(1, bucket, torch.ones_like(bucket))
+        self.counts = counts[:, :num_buckets]  # (B, G²)
+        self.starts = torch.cumsum(self.counts, dim=1) - self.counts
+        self.order = torch.argsort(bucket, dim=1, stable=True)  # point indices grouped by bucket
+        self.occupied = (self.counts > 0).sum(dim=1)  # (B,)
+        self.uniform = UniformSampler(coordinates, valid)
+
+    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None) -> Tensor:
+        """(B, num_samples, sample_size) indices of distinct points from distinct buckets."""
+        B, G = self.counts.shape
+        buckets = _weighted_top_k(self.counts[:, None, :].float().expand(B, num_samples, G), sample_size, generator)
+        flat = buckets.reshape(B, -1)
+        counts = torch.gather(self.counts, 1, flat)
+        starts = torch.gather(self.starts, 1, flat)
+        u = torch.rand(flat.shape, generator=generator, device=flat.device)
+        offset = (u * counts).long().clamp_max(counts - 1).clamp_min(0)
+        indices = torch.gather(self.order, 1, starts + offset).reshape(B, num_samples, sample_size)
+        too_few_buckets = self.occupied < sample_size
+        if bool(too_few_buckets.any()):
+            fallback = self.uniform.sample(num_samples, sample_size, generator)
+            indices = torch.where(too_few_buckets[:, None, None], fallback, indices)
+        return indices
+
+
+SAMPLERS = {"uniform": UniformSampler, "bucketed": BucketedSampler}

@@ -1,0 +1,1 @@
+"""Structure from motion: two-view geometry and (later) reconstructions."""

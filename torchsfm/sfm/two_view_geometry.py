@@ -1,0 +1,222 @@
+"""Two-view geometry from putative correspondences: robust F, then the calibrated relative pose.
+
+The public entry points :func:`estimate_fundamental` and :func:`estimate_relative_pose` accept
+one problem (N, 2) or a batch (B, N, 2), check their input, work in float64 and return results in
+the input's dtype. :class:`RobustFundamental` and :class:`RelativePoseEstimator` are the same
+operations as pipeline stages.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from torchsfm.camera import check_intrinsics, pixels_to_normalized, projection_matrix
+from torchsfm.config import Config
+from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
+from torchsfm.geometry.essential import essential_from_fundamental
+from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
+from torchsfm.geometry.fundamental_refinement import refine_fundamental
+from torchsfm.geometry.triangulation import triangulate_points
+from torchsfm.robust.models import FundamentalModel
+from torchsfm.sfm.calibrated_pose import calibrated_pose
+from torchsfm.robust.ransac import ransac
+from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
+
+
+@dataclass
+class FundamentalEstimate:
+    """Result of :func:`estimate_fundamental` (leading B only for batched input).
+
+    Fields:
+        F: (B, 3, 3), unit Frobenius norm, ``x2ᵀ F x1 ≈ 0`` in pixels.
+        inlier_mask: (B, N) bool, Sampson distance below the threshold under the final F.
+        num_trials: (B,) int64, RANSAC minimal samples drawn.
+        sampson_rms: (B,) root mean Sampson error of the inliers, pixels.
+    """
+
+    F: Tensor
+    inlier_mask: Tensor
+    num_trials: Tensor
+    sampson_rms: Tensor
+
+
+@dataclass
+class RelativePose:
+    """Result of :func:`estimate_relative_pose` (leading B only for batched input).
+
+    Fields:
+        R: (B, 3, 3) rotation of camera 2 relative to camera 1 (X2 = R X1 + t).
+        t: (B, 3) unit translation.
+        inlier_mask: (B, N) bool, epipolar inliers that triangulate in front of both cameras.
+        points3d: inlier points in the camera-1 frame (scale: ‖t‖ = 1), (M, 3) for one problem
+            and a tuple of B such tensors for a batch.
+        F: (B, 3, 3) the fundamental matrix of the final pose, K2⁻ᵀ [t]x R K1⁻¹ (unit norm).
+        num_trials: (B,) RANSAC minimal samples drawn.
+    """
+
+    R: Tensor
+    t: Tensor
+    inlier_mask: Tensor
+    points3d: Tensor | tuple[Tensor, ...]
+    F: Tensor
+    num_trials: Tensor
+
+
+def _check_correspondences(x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, bool]:
+    """Validate (N, 2) / (B, N, 2) pairs; return float64 (B, N, 2) copies and 'was unbatched'."""
+    sizes = check_shapes(x1=(x1, "* N 2"), x2=(x2, "* N 2"))
+    if x1.dim() not in (2, 3) or x1.shape[:-2] != x2.shape[:-2]:
+        raise ShapeError(f"x1 and x2 must both be (N, 2) or (B, N, 2), got {tuple(x1.shape)} and {tuple(x2.shape)}")
+    check_floating(x1=x1, x2=x2)
+    check_finite(x1=x1, x2=x2)
+    check_min_count("x1", sizes["N"], 8, "the 8-point algorithm (correspondences)")
+    unbatched = x1.dim() == 2
+    x1, x2 = (x.double().reshape(-1, sizes["N"], 2) for x in (x1, x2))
+    for b in range(x1.shape[0]):
+        for name, x in (("x1", x1[b]), ("x2", x2[b])):
+            distinct = count_distinct_rows(x)
+            if distinct < 8:
+                raise DegenerateConfigurationError(
+                    f"{name}{'' if unbatched else f'[{b}]'} has only {distinct} distinct point(s); "
+                    "a fundamental matrix needs at least 8 distinct correspondences"
+                )
+    return x1, x2, unbatched
+
+
+def _raise_on_failure(success: Tensor, unbatched: bool) -> None:
+    if not bool(success.all()):
+        failed = torch.nonzero(~success).flatten().tolist()
+        where = "" if unbatched else f" for problem(s) {failed}"
+        raise NotEnoughDataError(f"RANSAC found no fundamental matrix with at least 8 inliers{where}")
+
+
+def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch.Generator | None):
+    """RANSAC + optional LM on float64 (B, N, 2) inputs -> (F, inlier mask, trials, success)."""
+    data = torch.cat([x1, x2], dim=-1)
+    model = FundamentalModel(data)
+    found = ransac(model, data, config.fundamental.ransac, generator=generator)
+    F, inliers = found.model, found.inlier_mask
+    if config.fundamental.refine:
+        F, _ = refine_fundamental(F, x1, x2, inliers.double(), config.lm)
+        inliers = sampson_error(F, x1, x2) < config.fundamental.ransac.inlier_threshold**2
+    return F, inliers, found.num_trials, found.success & (inliers.sum(-1) >= 8)
+
+
+def estimate_fundamental(
+    x1: Tensor, x2: Tensor, *, config: Config | None = None, generator: torch.Generator | None = None
+) -> FundamentalEstimate:
+    """Robust fundamental matrix: bucketed RANSAC on the normalized 8-point algorithm, then LM.
+
+    Args:
+        x1, x2: pixel correspondences (N, 2) or (B, N, 2), N >= 8.
+        config: a :class:`~torchsfm.config.Config`; ``config.fundamental`` and ``config.lm``
+            are used. Defaults to the thesis' settings.
+        generator: source of RANSAC's random draws (seed it for reproducible results).
+
+    Returns:
+        A :class:`FundamentalEstimate` without the batch dimension for (N, 2) input.
+
+    Raises:
+        ShapeError, InputError: malformed input. NotEnoughDataError: fewer than 8
+        correspondences, or no model with 8 inliers. DegenerateConfigurationError: fewer than 8
+        distinct points.
+    """
+    config = config or Config()
+    dtype = x1.dtype
+    x1b, x2b, unbatched = _check_correspondences(x1, x2)
+    F, inliers, trials, success = _robust_fundamental(x1b, x2b, config, generator)
+    _raise_on_failure(success, unbatched)
+    sampson = sampson_error(F, x1b, x2b)
+    rms = ((sampson * inliers).sum(-1) / inliers.sum(-1).clamp_min(1)).sqrt()
+    result = FundamentalEstimate(F=F.to(dtype), inlier_mask=inliers, num_trials=trials, sampson_rms=rms.to(dtype))
+    return _unbatch(result) if unbatched else result
+
+
+def estimate_relative_pose(
+    x1: Tensor,
+    x2: Tensor,
+    K1: Tensor,
+    K2: Tensor,
+    *,
+    config: Config | None = None,
+    generator: torch.Generator | None = None,
+) -> RelativePose:
+    """Relative pose of two calibrated views from putative correspondences (thesis §3.3–3.5).
+
+    Robust F (:func:`estimate_fundamental`) → E = K2ᵀ F K1 → four (R, t) → cheirality →
+    optional LM on (R, t̂) over the Sampson error → triangulation of the inliers.
+
+    Args:
+        x1, x2: pixel correspondences (N, 2) or (B, N, 2).
+        K1, K2: intrinsics (3, 3) or (B, 3, 3).
+        config: uses ``fundamental``, ``relative_pose``, ``triangulation`` and ``lm``.
+        generator: RANSAC's random source.
+
+    Returns:
+        A :class:`RelativePose` (camera 2 from camera 1, unit t).
+    """
+    config = config or Config()
+    dtype = x1.dtype
+    x1b, x2b, unbatched = _check_correspondences(x1, x2)
+    B = x1b.shape[0]
+    check_floating(K1=K1, K2=K2)
+    check_intrinsics(K1=K1, K2=K2)
+    K1b, K2b = (K.double().expand(B, 3, 3) if K.dim() == 2 else K.double() for K in (K1, K2))
+    if K1b.shape[0] != B or K2b.shape[0] != B:
+        raise ShapeError(f"K1 and K2 must be (3, 3) or ({B}, 3, 3), got {tuple(K1.shape)} and {tuple(K2.shape)}")
+
+    F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator)
+    _raise_on_failure(success, unbatched)
+    R, t, inliers = calibrated_pose(essential_from_fundamental(F, K1b, K2b), x1b, x2b, K1b, K2b, candidates, config, generator)
+    F = fundamental_from_pose(K1b, K2b, R, t)
+
+    P1 = projection_matrix(K1b, torch.eye(3, dtype=torch.float64).expand(B, 3, 3), torch.zeros(B, 3, dtype=torch.float64))
+    P2 = projection_matrix(K2b, R, t)
+    X = triangulate_points(x1b, x2b, P1, P2, config.triangulation)  # (B, N, 3)
+    depth2 = (X @ R.transpose(-1, -2) + t[:, None, :])[..., 2]
+    inliers = inliers & (X[..., 2] > 0) & (depth2 > 0) & torch.isfinite(X).all(-1)
+    _raise_on_failure(inliers.sum(-1) >= 5, unbatched)
+    points = tuple(X[b][inliers[b]].to(dtype) for b in range(B))
+    result = RelativePose(R=R.to(dtype), t=t.to(dtype), inlier_mask=inliers, points3d=points, F=F.to(dtype), num_trials=trials)
+    if unbatched:
+        result = _unbatch(result)
+    return result
+
+
+def _unbatch(result):
+    """Drop the leading batch dimension of every tensor field (tuples of one: their element)."""
+    for name, value in vars(result).items():
+        setattr(result, name, value[0])
+    return result
+
+
+class RobustFundamental(nn.Module):
+    """Pipeline stage: (x1, x2) pixels -> :class:`FundamentalEstimate` (see :func:`estimate_fundamental`)."""
+
+    def __init__(self, config: Config | None = None) -> None:
+        super().__init__()
+        self.config = config or Config()
+
+    def forward(self, x1: Tensor, x2: Tensor, generator: torch.Generator | None = None) -> FundamentalEstimate:
+        return estimate_fundamental(x1, x2, config=self.config, generator=generator)
+
+    def extra_repr(self) -> str:
+        return repr(self.config.fundamental)
+
+
+class RelativePoseEstimator(nn.Module):
+    """Pipeline stage: (x1, x2, K1, K2) -> :class:`RelativePose` (see :func:`estimate_relative_pose`)."""
+
+    def __init__(self, config: Config | None = None) -> None:
+        super().__init__()
+        self.config = config or Config()
+
+    def forward(self, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor,
+                generator: torch.Generator | None = None) -> RelativePose:
+        return estimate_relative_pose(x1, x2, K1, K2, config=self.config, generator=generator)
+
+    def extra_repr(self) -> str:
+        return f"{self.config.relative_pose}, {self.config.triangulation}"

@@ -1,0 +1,197 @@
+"""Seeded synthetic scenes with ground truth, for tests, examples and benchmarks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import project, projection_matrix
+from torchsfm.geometry.fundamental import epipolar_line_distances, fundamental_from_pose
+from torchsfm.geometry.rotation import angle_between, axis_angle_to_rotation, rotation_angle
+
+
+@dataclass
+class TwoViewScene:
+    """Two calibrated views of random points, with planted outliers.
+
+    Fields (float64 unless noted):
+        K1, K2: (3, 3) intrinsics. R, t: (3, 3), (3,) camera 2 from camera 1 (‖t‖ = 1).
+        points3d: (N, 3) true points in the camera-1 frame.
+        x1_true, x2_true: (N, 2) exact projections (pixels).
+        x1, x2: (N, 2) observations: noisy projections, and random pixels at outlier rows.
+        is_inlier: (N,) bool, False where x2 was replaced by a random point.
+        image_size: (width, height) in pixels.
+    """
+
+    K1: Tensor
+    K2: Tensor
+    R: Tensor
+    t: Tensor
+    points3d: Tensor
+    x1_true: Tensor
+    x2_true: Tensor
+    x1: Tensor
+    x2: Tensor
+    is_inlier: Tensor
+    image_size: tuple[int, int]
+
+    @property
+    def F(self) -> Tensor:
+        """Ground-truth fundamental matrix (unit norm)."""
+        return fundamental_from_pose(self.K1, self.K2, self.R, self.t)
+
+    @property
+    def P1(self) -> Tensor:
+        return projection_matrix(self.K1, torch.eye(3, dtype=self.K1.dtype), torch.zeros(3, dtype=self.K1.dtype))
+
+    @property
+    def P2(self) -> Tensor:
+        return projection_matrix(self.K2, self.R, self.t)
+
+
+def _uniform(shape: tuple[int, ...], low: float, high: float, generator: torch.Generator) -> Tensor:
+    return low + (high - low) * torch.rand(shape, generator=generator, dtype=torch.float64)
+
+
+def look_at_rotation(center: Tensor, target: Tensor, roll: float = 0.0) -> Tensor:
+    """Rotation (camera from world) of a camera at ``center`` looking at ``target``, y down."""
+    z = target - center
+    z = z / z.norm()
+    up = torch.tensor([0.0, -1.0, 0.0], dtype=center.dtype)
+    x = torch.linalg.cross(up, z)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])
+    return axis_angle_to_rotation(torch.tensor([0.0, 0.0, roll], dtype=center.dtype)) @ R
+
+
+def synthetic_two_view(
+    num_points: int = 200,
+    *,
+    noise: float = 0.0,
+    outlier_ratio: float = 0.0,
+    image_size: tuple[int, int] = (640, 480),
+    focal: float = 600.0,
+    baseline: float = 1.0,
+    depth: tuple[float, float] = (4.0, 8.0),
+    min_outlier_distance: float = 5.0,
+    seed: int = 0,
+) -> TwoViewScene:
+    """Random points seen by two cameras converging on them, with noise and planted outliers.
+
+    Points fill a box in front of camera 1 at ``depth``; camera 2 sits ``baseline`` away and looks
+    at the box centre, so both views see every point. Gaussian noise of std ``noise`` pixels is
+    added to both images; a fraction ``outlier_ratio`` of rows gets a uniformly random x2 at least
+    ``min_outlier_distance`` pixels (symmetric) from the true epipolar geometry.
+    """
+    generator = torch.Generator().manual_seed(seed)
+    width, height = image_size
+    K = torch.tensor([[focal, 0.0, (width - 1) / 2], [0.0, focal * 1.02, (height - 1) / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    centre = torch.tensor([0.0, 0.0, sum(depth) / 2], dtype=torch.float64)
+    direction = torch.cat([_uniform((2,), -1.0, 1.0, generator), _uniform((1,), -0.3, 0.3, generator)])
+    C2 = baseline * direction / direction.norm()
+    R = look_at_rotation(C2, centre, roll=float(_uniform((1,), -0.2, 0.2, generator)))
+    t = -R @ C2
+    P1 = projection_matrix(K, torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+    P2 = projection_matrix(K, R, t)
+
+    points = []
+    count = 0
+    while count < num_points:
+        z = _uniform((4 * num_points,), depth[0], depth[1], generator)
+        xy = _uniform((4 * num_points, 2), -0.5, 0.5, generator) * torch.tensor([width, height], dtype=torch.float64) / focal * z[:, None]
+        X = torch.cat([xy, z[:, None]], dim=-1)
+        x2 = project(P2, X)
+        margin = 2.0
+        visible = ((x2[:, 0] > margin) & (x2[:, 0] < width - 1 - margin) & (x2[:, 1] > margin) & (x2[:, 1] < height - 1 - margin)
+                   & ((X @ R.T + t)[:, 2] > 0))
+        points.append(X[visible])
+        count += int(visible.sum())
+    X = torch.cat(points)[:num_points]
+    x1_true, x2_true = project(P1, X), project(P2, X)
+    x1 = x1_true + noise * torch.randn(x1_true.shape, generator=generator, dtype=torch.float64)
+    x2 = x2_true + noise * torch.randn(x2_true.shape, generator=generator, dtype=torch.float64)
+
+    num_outliers = int(round(outlier_ratio * num_points))
+    is_inlier = torch.ones(num_points, dtype=torch.bool)
+    outliers = torch.randperm(num_points, generator=generator)[:num_outliers]
+    is_inlier[outliers] = False
+    F = fundamental_from_pose(K, K, R, t)
+    pending = outliers
+    while pending.numel():
+        x2[pending] = _uniform((pending.numel(), 2), 0.0, 1.0, generator) * torch.tensor([width - 1, height - 1], dtype=torch.float64)
+        d1, d2 = epipolar_line_distances(F, x1[pending], x2[pending])
+        pending = pending[torch.minimum(d1, d2) < min_outlier_distance]
+    return TwoViewScene(K1=K, K2=K.clone(), R=R, t=t / t.norm(), points3d=X / t.norm(), x1_true=x1_true, x2_true=x2_true,
+                        x1=x1, x2=x2, is_inlier=is_inlier, image_size=image_size)
+
+
+def rotation_error_deg(R_estimated: Tensor, R_true: Tensor) -> float:
+    """Angle of R_estimatedᵀ R_true in degrees."""
+    return float(rotation_angle(R_estimated.double(), R_true.double()))
+
+
+def translation_direction_error_deg(t_estimated: Tensor, t_true: Tensor) -> float:
+    """Angle between two translation directions in degrees (sign matters)."""
+    return float(angle_between(t_estimated.double(), t_true.double()))
+
+
+def replace_with_random_points(
+    x: Tensor, fraction: float, image_size: tuple[int, int], generator: torch.Generator
+) -> tuple[Tensor, Tensor]:
+    """Replace a random ``fraction`` of the rows of x (N, 2) by uniform pixels of the image.
+
+    Returns the corrupted copy and the (N,) bool mask of rows left untouched.
+    """
+    n = x.shape[0]
+    replaced = torch.randperm(n, generator=generator)[: int(round(fraction * n))]
+    corrupted = x.clone()
+    size = torch.tensor(image_size, dtype=x.dtype) - 1
+    corrupted[replaced] = torch.rand(len(replaced), 2, generator=generator, dtype=x.dtype) * size
+    kept = torch.ones(n, dtype=torch.bool)
+    kept[replaced] = False
+    return corrupted, kept
+
+
+def mask_recall_precision(estimated: Tensor, truth: Tensor) -> tuple[float, float]:
+    """(recall, precision) of an estimated inlier mask against the true one."""
+    hits = int((estimated & truth).sum())
+    return hits / max(int(truth.sum()), 1), hits / max(int(estimated.sum()), 1)
+
+
+def evaluate_two_view_pair(dataset, i: int, j: int, image_size: tuple[int, int], outliers: float, seed: int,
+                           config=None) -> dict[str, float]:
+    """Corrupt the ground-truth matches of views (i, j) of an Oxford set and score both estimators.
+
+    A fraction ``outliers`` of view j's matched corners is replaced by uniform random pixels;
+    :func:`torchsfm.estimate_fundamental` and :func:`torchsfm.estimate_relative_pose` (K from
+    the ground-truth P) then run. Returns recall/precision of both inlier masks (and the counts
+    behind them, for pooling) and the rotation / translation-direction errors in degrees.
+    """
+    from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
+
+    generator = torch.Generator().manual_seed(seed)
+    K, _, _ = dataset.cameras()
+    x1, x2 = dataset.correspondences(i, j)
+    x2, truth = replace_with_random_points(x2, outliers, image_size, generator)
+    fundamental = estimate_fundamental(x1, x2, config=config, generator=generator)
+    pose = estimate_relative_pose(x1, x2, K[i], K[j], config=config, generator=generator)
+    R_true, t_true = dataset.relative_pose(i, j)
+    f_recall, f_precision = mask_recall_precision(fundamental.inlier_mask, truth)
+    p_recall, p_precision = mask_recall_precision(pose.inlier_mask, truth)
+    return {
+        "matches": float(len(truth)),
+        "true_inliers": float(truth.sum()),
+        "F_hits": float((fundamental.inlier_mask & truth).sum()),
+        "F_kept": float(fundamental.inlier_mask.sum()),
+        "pose_hits": float((pose.inlier_mask & truth).sum()),
+        "pose_kept": float(pose.inlier_mask.sum()),
+        "F_recall": f_recall,
+        "F_precision": f_precision,
+        "pose_recall": p_recall,
+        "pose_precision": p_precision,
+        "R_error_deg": rotation_error_deg(pose.R, R_true),
+        "t_error_deg": translation_direction_error_deg(pose.t, t_true),
+    }

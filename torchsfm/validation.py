@@ -1,0 +1,86 @@
+"""Input checks shared by every public function: shapes bound across arguments, finiteness, counts.
+
+A shape spec is a string of space-separated dimensions: an integer must match exactly, a name
+binds a size that must agree wherever the same name appears (across all arguments of one call),
+and a leading ``*`` admits any number of leading (batch) dimensions::
+
+    check_shapes(x1=(x1, "* N 2"), x2=(x2, "* N 2"), K1=(K1, "* 3 3"))
+
+Failures raise :class:`~torchsfm.errors.ShapeError` naming the argument, its shape and the spec.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
+
+
+def check_shapes(**specs: tuple[Tensor, str]) -> dict[str, int]:
+    """Check every ``name=(tensor, spec)``; return the sizes bound to the spec's names."""
+    bound: dict[str, int] = {}
+    bound_by: dict[str, str] = {}
+    for name, (tensor, spec) in specs.items():
+        if not isinstance(tensor, Tensor):
+            raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
+        dims = spec.split()
+        any_leading = bool(dims) and dims[0] == "*"
+        core = dims[1:] if any_leading else dims
+        shape = tuple(tensor.shape)
+        if len(shape) < len(core) or (not any_leading and len(shape) != len(core)):
+            raise ShapeError(f"{name} must have shape ({', '.join(dims)}), got {shape}")
+        for dim, size in zip(core, shape[len(shape) - len(core):]):
+            if dim.isdigit():
+                if size != int(dim):
+                    raise ShapeError(f"{name} must have shape ({', '.join(dims)}), got {shape}")
+            elif dim in bound and bound[dim] != size:
+                raise ShapeError(
+                    f"{name} has {dim}={size} but {bound_by[dim]} has {dim}={bound[dim]} "
+                    f"(shapes must agree: {name} is {shape})"
+                )
+            else:
+                bound[dim], bound_by[dim] = size, name
+    return bound
+
+
+def check_finite(**tensors: Tensor) -> None:
+    """Raise :class:`InputError` naming the first argument that holds a NaN or an infinity."""
+    for name, tensor in tensors.items():
+        if not bool(torch.isfinite(tensor).all()):
+            bad = int((~torch.isfinite(tensor)).sum())
+            raise InputError(f"{name} holds {bad} NaN or infinite value(s)")
+
+
+def check_min_count(name: str, count: int, minimum: int, what: str) -> None:
+    """Raise :class:`NotEnoughDataError` when ``count < minimum``."""
+    if count < minimum:
+        raise NotEnoughDataError(f"{name}: {what} needs at least {minimum}, got {count}")
+
+
+def check_floating(**tensors: Tensor) -> None:
+    """Raise :class:`InputError` for integer or boolean tensors where coordinates are expected."""
+    for name, tensor in tensors.items():
+        if not tensor.is_floating_point():
+            raise InputError(f"{name} must be a floating-point tensor, got {tensor.dtype}")
+
+
+def count_distinct_rows(x: Tensor) -> int:
+    """Number of distinct rows of x (N, D), by an exact lexicographic sort (stable sorts)."""
+    order = torch.arange(x.shape[0], device=x.device)
+    for column in reversed(range(x.shape[1])):
+        order = order[torch.argsort(x[order, column], stable=True)]
+    ordered = x[order]
+    return 1 + int((ordered[1:] != ordered[:-1]).any(-1).sum()) if x.shape[0] else 0
+
+
+def add_batch_dim(x: Tensor, core_ndim: int) -> tuple[Tensor, bool]:
+    """Return ``x`` with exactly one leading batch dimension and whether one was added.
+
+    ``core_ndim`` is the number of trailing dimensions of a single problem, e.g. 2 for (N, 2).
+    """
+    if x.dim() == core_ndim:
+        return x.unsqueeze(0), True
+    if x.dim() == core_ndim + 1:
+        return x, False
+    raise ShapeError(f"expected {core_ndim} or {core_ndim + 1} dimensions, got shape {tuple(x.shape)}")

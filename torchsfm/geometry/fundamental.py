@@ -132,23 +132,26 @@ def sampson_residual(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     return algebraic / denominator.clamp_min(1e-300).sqrt()
 
 
-def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """Derivative of :func:`sampson_residual` with respect to the entries of F (row-major).
+def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor, directions: Tensor) -> Tensor:
+    """Derivatives of :func:`sampson_residual` along directions in the space of F.
 
-    F (B, 3, 3), x1, x2 (B, N, 2) -> (B, N, 9). With a = x2ᵀFx1 and
-    d = (Fx1)₁² + (Fx1)₂² + (Fᵀx2)₁² + (Fᵀx2)₂²: dr/dF = da/dF / √d - a dd/dF / (2 d^{3/2}).
+    F (B, 3, 3), x1, x2 (B, N, 2), directions D (B, P, 3, 3) -> (B, N, P) with entry p the
+    derivative of the residual along F + εD_p. With a = x2ᵀFx1, l2 = F x1, l1 = Fᵀ x2,
+    d = l2₁² + l2₂² + l1₁² + l1₂² and c = a / d:
+    dr/dF = (u x1ᵀ - x2 vᵀ) / √d with u = x2 - c (l2₁, l2₂, 0), v = c (l1₁, l1₂, 0), and
+    dr·D_p = ⟨dr/dF, D_p⟩: one (N, 9) x (9, P) product.
     """
+    B, P = directions.shape[:2]
+    N = x1.shape[-2]
     algebraic, line2, line1 = _epipolar_terms(F, x1, x2)  # (B, N), (B, 3, N), (B, 3, N)
     h1, h2 = to_homogeneous(x1), to_homogeneous(x2)  # (B, N, 3)
-    denominator = (line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)).clamp_min(1e-300)
-    d_algebraic = h2[..., :, None] * h1[..., None, :]  # (B, N, 3, 3): d a / d F_ab = h2_a h1_b
     first_two = torch.tensor([1.0, 1.0, 0.0], dtype=F.dtype, device=F.device)
-    # d d / d F_ab = 2 (F h1)_a h1_b [a < 2] + 2 (Fᵀ h2)_b h2_a [b < 2]
-    d_denominator = 2 * ((line2.transpose(-1, -2) * first_two)[..., :, None] * h1[..., None, :]
-                         + h2[..., :, None] * (line1.transpose(-1, -2) * first_two)[..., None, :])
-    root = denominator.sqrt()[..., None, None]
-    jacobian = d_algebraic / root - (algebraic[..., None, None] / (2 * root**3)) * d_denominator
-    return jacobian.reshape(*jacobian.shape[:-2], 9)
+    denominator = (line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)).clamp_min(1e-300)
+    c = (algebraic / denominator)[..., None]
+    u = h2 - c * line2.transpose(-1, -2) * first_two
+    v = c * line1.transpose(-1, -2) * first_two
+    gradient = (u[..., :, None] * h1[..., None, :] - h2[..., :, None] * v[..., None, :]).reshape(B, N, 9)
+    return (gradient @ directions.reshape(B, P, 9).transpose(-1, -2)) / denominator.sqrt()[..., None]
 
 
 def sampson_error(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:

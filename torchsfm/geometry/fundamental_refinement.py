@@ -43,21 +43,21 @@ def _retract(state: Tensor, delta: Tensor) -> Tensor:
     return torch.cat([U.flatten(1), V.flatten(1), state[:, 18:] + delta[:, 6:7]], dim=-1)
 
 
+_ROTATION_GENERATORS = skew(torch.eye(3, dtype=torch.float64))  # [e_k]x, (3, 3, 3)
+_SIGMA_DIRECTION = torch.diag(torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))[None]  # d diag(1, σ, 0) / dσ
+
+
 def _tangent_derivatives(state: Tensor) -> Tensor:
     """dF/d delta at delta = 0 for the 7 tangent directions: (B, 19) -> (B, 7, 3, 3).
 
     U ← U exp([ω]x) gives U [e_k]x S Vᵀ; V ← V exp([ω]x) gives -U S [e_k]x Vᵀ; sigma gives
     U diag(0, 1, 0) Vᵀ.
     """
-    U = state[:, :9].reshape(-1, 3, 3)[:, None]
-    V = state[:, 9:18].reshape(-1, 3, 3)[:, None]
-    sigma = state[:, 18]
-    generators = skew(torch.eye(3, dtype=state.dtype, device=state.device))  # (3, 3, 3): [e_k]x
-    S = torch.diag_embed(torch.stack([torch.ones_like(sigma), sigma, torch.zeros_like(sigma)], dim=-1))[:, None]
-    d_sigma = torch.zeros_like(S)
-    d_sigma[..., 1, 1] = 1.0
-    Vt = V.transpose(-1, -2)
-    return torch.cat([U @ generators @ S @ Vt, -(U @ S @ generators @ Vt), U @ d_sigma @ Vt], dim=1)
+    U = state[:, :9].reshape(-1, 1, 3, 3)
+    Vt = state[:, 9:18].reshape(-1, 1, 3, 3).transpose(-1, -2)
+    S = torch.diag_embed(torch.stack([torch.ones_like(state[:, 18]), state[:, 18], torch.zeros_like(state[:, 18])], dim=-1))[:, None]
+    generators = torch.cat([_ROTATION_GENERATORS.to(state.dtype), _SIGMA_DIRECTION.to(state.dtype)])  # (4, 3, 3)
+    return torch.cat([U @ generators[:3] @ S @ Vt, -(U @ S @ generators[:3] @ Vt), U @ generators[3:] @ Vt], dim=1)
 
 
 def refine_fundamental(
@@ -87,7 +87,7 @@ def refine_fundamental(
     def jacobian(state: Tensor) -> Tensor:
         F_pixels = T2.transpose(-1, -2) @ _from_orthonormal(state) @ T1
         d_pixels = T2.transpose(-1, -2)[:, None] @ _tangent_derivatives(state) @ T1[:, None]  # (B, 7, 3, 3)
-        return (sampson_jacobian(F_pixels, x1, x2) @ d_pixels.flatten(-2).transpose(-1, -2)) * root_weights[..., None]
+        return sampson_jacobian(F_pixels, x1, x2, d_pixels) * root_weights[..., None]
 
     result = levenberg_marquardt(residuals, _to_orthonormal(F_normalized), config, retract=_retract, tangent_dim=7,
                                  jacobian=jacobian)

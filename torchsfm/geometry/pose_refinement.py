@@ -18,6 +18,9 @@ from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
 from torchsfm.optim.lm import LMResult, levenberg_marquardt
 
 
+_ROTATION_GENERATORS = skew(torch.eye(3, dtype=torch.float64))  # [e_k]x, (3, 3, 3)
+
+
 def sphere_tangent_basis(t: Tensor) -> Tensor:
     """Two unit vectors orthogonal to unit t and to each other: (*, 3) -> (*, 2, 3)."""
     axes = torch.eye(3, dtype=t.dtype, device=t.device)
@@ -54,11 +57,10 @@ def relative_pose_problem(
 
     def jacobian(state: Tensor) -> Tensor:
         R, t = state[:, None, :9].reshape(-1, 1, 3, 3), state[:, None, 9:]
-        generators = skew(torch.eye(3, dtype=state.dtype, device=state.device))  # [e_k]x
-        d_rotation = skew(t) @ generators @ R  # R ← exp([ω]x) R: (B, 3, 3, 3)
+        d_rotation = skew(t) @ _ROTATION_GENERATORS.to(state.dtype) @ R  # R ← exp([ω]x) R: (B, 3, 3, 3)
         d_translation = skew(sphere_tangent_basis(state[:, 9:])) @ R  # (B, 2, 3, 3)
         d_F = K2_inv_t[:, None] @ torch.cat([d_rotation, d_translation], dim=1) @ K1_inv[:, None]
-        return (sampson_jacobian(fundamental(state), x1, x2) @ d_F.flatten(-2).transpose(-1, -2)) * root_weights[..., None]
+        return sampson_jacobian(fundamental(state), x1, x2, d_F) * root_weights[..., None]
 
     return residuals, jacobian
 

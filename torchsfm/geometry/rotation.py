@@ -12,12 +12,14 @@ import torch
 from torch import Tensor
 
 
+_SKEW_BASIS = torch.tensor(
+    [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64
+)  # row k: [e_k]x flattened
+
+
 def skew(v: Tensor) -> Tensor:
     """Cross-product matrix ``[v]x`` with ``[v]x w = v × w``: (*, 3) -> (*, 3, 3)."""
-    x, y, z = v.unbind(-1)
-    zero = torch.zeros_like(x)
-    rows = (zero, -z, y, z, zero, -x, -y, x, zero)
-    return torch.stack(rows, dim=-1).reshape(*v.shape[:-1], 3, 3)
+    return (v @ _SKEW_BASIS.to(v.dtype)).reshape(*v.shape[:-1], 3, 3)
 
 
 def _safe_angle(squared: Tensor, small: float) -> tuple[Tensor, Tensor]:

@@ -7,8 +7,11 @@ rotation/translation ambiguity: a ~10° rotation error with a translation ~90° 
 the points). We therefore refine several starts at once, as one batched LM problem: the pose
 decomposed from F plus ``num_starts`` essential matrices fitted (8-point algorithm, projected to
 singular values 1, 1, 0) to random bucketed subsets of ``start_sample_size`` of F's inliers —
-larger than minimal, since the candidates hold few outliers and larger samples start closer. Each start re-classifies its inliers under its own calibrated model with a shrinking
-threshold (factor, factor/2, ..., 1) × threshold and is refined on them; the start with the
+larger than minimal, since the candidates hold few outliers and larger samples start closer. After the first stage only the ``kept_starts`` starts of lowest truncated cost go on. Each
+start re-classifies its support under its own calibrated model with a shrinking
+threshold (start factor, start factor / 2, ..., support factor) × threshold and is refined on it
+(the last support is wider than the inlier threshold, so that the refinement does not see a noise
+distribution truncated at the threshold); the start with the
 lowest truncated quadratic cost (MSAC) over all points wins (LO-RANSAC's idea applied to every
 start rather than to the best one).
 """
@@ -26,11 +29,11 @@ from torchsfm.geometry.pose_refinement import refine_relative_pose
 from torchsfm.robust.samplers import BucketedSampler
 
 
-def threshold_schedule(threshold: float, start_factor: float) -> list[float]:
-    """threshold × (start_factor, start_factor / 2, ..., 1)."""
+def threshold_schedule(threshold: float, start_factor: float, end_factor: float) -> list[float]:
+    """threshold × (start_factor, start_factor / 2, ..., end_factor)."""
     factors = [start_factor]
-    while factors[-1] > 1:
-        factors.append(max(1.0, factors[-1] / 2))
+    while factors[-1] > end_factor:
+        factors.append(max(end_factor, factors[-1] / 2))
     return [threshold * factor for factor in factors]
 
 
@@ -67,23 +70,49 @@ def calibrated_pose(
         subsets = torch.zeros(B, settings.num_starts, N, dtype=x1.dtype, device=x1.device).scatter_(2, index, 1.0)
         sampled = project_to_essential(eight_point(n1[:, None], n2[:, None], subsets))
         starts = torch.cat([starts, sampled], dim=1)
-    S = starts.shape[1]
-
-    def flat(x: Tensor) -> Tensor:  # (B, ...) -> (B * S, ...)
-        return x[:, None].expand(B, S, *x.shape[1:]).reshape(B * S, *x.shape[1:])
-
-    x1s, x2s, K1s, K2s, n1s, n2s, valid = (flat(x) for x in (x1, x2, K1, K2, n1, n2, candidates))
-    R, t, _ = select_pose(*POSE_CANDIDATES[settings.method](starts.reshape(B * S, 3, 3)), n1s, n2s, valid.to(x1.dtype))
     threshold = config.fundamental.ransac.inlier_threshold
-    inliers = valid
-    for stage_threshold in threshold_schedule(threshold, settings.start_threshold_factor) if settings.refine else []:
-        inliers = sampson_error(fundamental_from_pose(K1s, K2s, R, t), x1s, x2s) < stage_threshold**2
-        R, t, _ = refine_relative_pose(R, t, x1s, x2s, K1s, K2s, inliers.to(x1.dtype), config.lm)
-    errors = sampson_error(fundamental_from_pose(K1s, K2s, R, t), x1s, x2s)
-    inliers = errors < threshold**2
-    truncated_cost = errors.clamp_max(threshold**2).sum(-1)  # MSAC: inliers by residual, others by the threshold
-    best = truncated_cost.reshape(B, S).argmin(-1) + torch.arange(B, device=x1.device) * S
-    R, t, inliers = R[best], t[best], inliers[best]
+    schedule = threshold_schedule(threshold, settings.start_threshold_factor, settings.refine_support_factor)
+    R, t = _decompose_starts(starts, n1, n2, candidates, settings.method)  # (B, S, 3, 3), (B, S, 3)
+    for stage, stage_threshold in enumerate(schedule if settings.refine else []):
+        R, t = _refine_starts(R, t, x1, x2, K1, K2, stage_threshold, config)
+        if stage == 0 and R.shape[1] > settings.kept_starts:  # prune to the most promising starts
+            keep = _truncated_cost(R, t, x1, x2, K1, K2, threshold).topk(settings.kept_starts, dim=1, largest=False).indices
+            R = torch.gather(R, 1, keep[..., None, None].expand(B, -1, 3, 3))
+            t = torch.gather(t, 1, keep[..., None].expand(B, -1, 3))
+    best = _truncated_cost(R, t, x1, x2, K1, K2, threshold).argmin(dim=1)
+    R, t = R[torch.arange(B), best], t[torch.arange(B), best]
+    inliers = sampson_error(fundamental_from_pose(K1, K2, R, t), x1, x2) < threshold**2
     # Epipolar errors cannot tell (R, t) from (R, -t) or the twisted pair: settle it by cheirality.
     R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_pose(R, t)), n1, n2, inliers.to(x1.dtype))
     return R, t, inliers
+
+
+def _expand(x: Tensor, S: int) -> Tensor:
+    """(B, ...) -> (B * S, ...): one copy of a problem's data per start."""
+    return x[:, None].expand(x.shape[0], S, *x.shape[1:]).reshape(x.shape[0] * S, *x.shape[1:])
+
+
+def _decompose_starts(E: Tensor, n1: Tensor, n2: Tensor, candidates: Tensor, method: str) -> tuple[Tensor, Tensor]:
+    """(B, S, 3, 3) essential starts -> cheirality-selected R (B, S, 3, 3), t (B, S, 3)."""
+    B, S = E.shape[:2]
+    R, t, _ = select_pose(*POSE_CANDIDATES[method](E.reshape(B * S, 3, 3)), _expand(n1, S), _expand(n2, S),
+                          _expand(candidates, S).to(n1.dtype))
+    return R.reshape(B, S, 3, 3), t.reshape(B, S, 3)
+
+
+def _refine_starts(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, threshold: float,
+                   config: Config) -> tuple[Tensor, Tensor]:
+    """One stage: each start's support (Sampson < threshold under its own pose), then LM on it."""
+    B, S = R.shape[:2]
+    x1s, x2s, K1s, K2s = (_expand(x, S) for x in (x1, x2, K1, K2))
+    R, t = R.reshape(B * S, 3, 3), t.reshape(B * S, 3)
+    support = sampson_error(fundamental_from_pose(K1s, K2s, R, t), x1s, x2s) < threshold**2
+    R, t, _ = refine_relative_pose(R, t, x1s, x2s, K1s, K2s, support.to(x1.dtype), config.lm)
+    return R.reshape(B, S, 3, 3), t.reshape(B, S, 3)
+
+
+def _truncated_cost(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, threshold: float) -> Tensor:
+    """MSAC cost Σ min(Sampson, threshold²) of every start over all points: (B, S)."""
+    S = R.shape[1]
+    F = fundamental_from_pose(K1[:, None], K2[:, None], R, t)  # (B, S, 3, 3)
+    return sampson_error(F, x1[:, None], x2[:, None]).clamp_max(threshold**2).sum(-1)

@@ -99,9 +99,11 @@ def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch
     model = FundamentalModel(data)
     found = ransac(model, data, config.fundamental.ransac, generator=generator)
     F, inliers = found.model, found.inlier_mask
-    if config.fundamental.refine:
-        F, _ = refine_fundamental(F, x1, x2, inliers.double(), config.lm)
-        inliers = sampson_error(F, x1, x2) < config.fundamental.ransac.inlier_threshold**2
+    threshold_sq = config.fundamental.ransac.inlier_threshold**2
+    for _ in range(config.fundamental.refine_rounds if config.fundamental.refine else 0):
+        support = sampson_error(F, x1, x2) < threshold_sq * config.fundamental.refine_support_factor**2
+        F, _ = refine_fundamental(F, x1, x2, support.double(), config.lm)
+    inliers = sampson_error(F, x1, x2) < threshold_sq
     return F, inliers, found.num_trials, found.success & (inliers.sum(-1) >= 8)
 
 

@@ -58,15 +58,13 @@ def test_depths_in_closed_form():
     assert_close(depth2, (scene.points3d @ scene.R.T + scene.t)[:, 2], rtol=1e-10, atol=0)
 
 
-def test_svd_is_the_most_accurate_under_noise():
-    """The thesis' comparison (§3.4): the linear method is the most fragile on noisy E."""
-    errors = {method: [] for method in POSE_CANDIDATES}
-    for seed in range(20):
+def test_methods_agree_on_a_noisy_rank2_E():
+    """On a rank-2 E all three decompositions are the same orthogonal Procrustes answer (they
+    differ only on a rank-3 E, see examples/essential_methods.py)."""
+    for seed in range(5):
         scene = synthetic_two_view(100, noise=1.0, seed=seed)
         E = essential_from_fundamental(eight_point(scene.x1, scene.x2), scene.K1, scene.K2)
-        for method, candidates in POSE_CANDIDATES.items():
-            R, t, _ = select_pose(*candidates(E), *_normalized(scene))
-            errors[method].append(rotation_error_deg(R, scene.R) + translation_direction_error_deg(t, scene.t))
-    median = {method: torch.tensor(values).median().item() for method, values in errors.items()}
-    assert median["svd"] <= median["quaternion"] + 1e-6
-    assert median["svd"] <= median["linear"] + 1e-6
+        poses = {method: select_pose(*candidates(E), *_normalized(scene))[:2] for method, candidates in POSE_CANDIDATES.items()}
+        for method in ("linear", "quaternion"):
+            assert_close(poses[method][0], poses["svd"][0], rtol=0, atol=1e-9)
+            assert_close(poses[method][1], poses["svd"][1], rtol=0, atol=1e-9)

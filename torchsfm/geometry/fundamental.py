@@ -50,13 +50,15 @@ def smallest_right_singular_vector(A: Tensor, weights: Tensor | None = None) -> 
     return vectors[..., 0]
 
 
-def eight_point(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor:
+def eight_point(x1: Tensor, x2: Tensor, weights: Tensor | None = None, *, enforce_rank2_constraint: bool = True) -> Tensor:
     """Normalized 8-point algorithm with rank-2 enforcement (Alg. 3.3.2).
 
     Args:
         x1, x2: pixel correspondences (*, N, 2), N >= 8 points of non-zero weight.
         weights: optional (*, N) weights; 0 drops a point (outliers, padding), so one call fits
             minimal samples and inlier sets alike.
+        enforce_rank2_constraint: False returns the linear solution of Alg. 3.3.1 step 3 (rank 3
+            under noise), for studies of what the constraint buys.
 
     Returns:
         F (*, 3, 3) of unit Frobenius norm with ``x2ᵀ F x1 ≈ 0``.
@@ -64,7 +66,9 @@ def eight_point(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor
     n1, T1 = hartley_normalize(x1, weights)
     n2, T2 = hartley_normalize(x2, weights)
     f = smallest_right_singular_vector(epipolar_design_matrix(n1, n2), weights)
-    F = enforce_rank2(f.reshape(*f.shape[:-1], 3, 3))
+    F = f.reshape(*f.shape[:-1], 3, 3)
+    if enforce_rank2_constraint:
+        F = enforce_rank2(F)
     return normalize_scale(T2.transpose(-1, -2) @ F @ T1)
 
 

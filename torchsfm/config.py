@@ -98,7 +98,7 @@ class FundamentalConfig:
 
     ransac: RansacConfig = field(default_factory=RansacConfig)
     refine: bool = True
-    refine_rounds: int = 2
+    refine_rounds: int = 1
     refine_support_factor: float = 1.5
 
     def __post_init__(self) -> None:

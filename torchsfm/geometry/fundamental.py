@@ -147,13 +147,16 @@ def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor, directions: Tensor) -> T
     """
     B, P = directions.shape[:2]
     N = x1.shape[-2]
-    algebraic, line2, line1 = _epipolar_terms(F, x1, x2)  # (B, N), (B, 3, N), (B, 3, N)
     h1, h2 = to_homogeneous(x1), to_homogeneous(x2)  # (B, N, 3)
+    line2 = h1 @ F.transpose(-1, -2)  # (B, N, 3), point-major so the outer products below stay contiguous
+    line1 = h2 @ F
+    algebraic = (h2 * line2).sum(-1)
     first_two = torch.tensor([1.0, 1.0, 0.0], dtype=F.dtype, device=F.device)
-    denominator = (line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)).clamp_min(1e-300)
+    line2, line1 = line2 * first_two, line1 * first_two
+    denominator = (line2.square().sum(-1) + line1.square().sum(-1)).clamp_min(1e-300)
     c = (algebraic / denominator)[..., None]
-    u = h2 - c * line2.transpose(-1, -2) * first_two
-    v = c * line1.transpose(-1, -2) * first_two
+    u = h2 - c * line2
+    v = c * line1
     gradient = (u[..., :, None] * h1[..., None, :] - h2[..., :, None] * v[..., None, :]).reshape(B, N, 9)
     return (gradient @ directions.reshape(B, P, 9).transpose(-1, -2)) / denominator.sqrt()[..., None]
 

@@ -1,29 +1,82 @@
-"""Command line: ``torchsfm demo``. Library-first: each command calls public functions.
+"""Command line: ``torchsfm demo | two-view``. Thin: parse, then call :mod:`torchsfm.actions`.
 
-Errors raised by torchsfm become one line on stderr and exit status 2.
+Progress goes to stderr; any torchsfm error becomes one line ``torchsfm: error: ...`` on stderr
+and exit status 2, with no output files written.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
+from pathlib import Path
 
 from torchsfm.errors import TorchSfmError
 
 
-def _demo(args: argparse.Namespace) -> None:
-    from torchsfm.demo import print_demo, run_demo
+def _progress(quiet: bool):
+    start = time.perf_counter()
 
-    print_demo(run_demo(outliers=args.outliers, seed=args.seed), args.outliers)
+    def report(message: str) -> None:
+        if not quiet:
+            print(f"[{time.perf_counter() - start:6.2f} s] {message}", file=sys.stderr, flush=True)
+
+    return report
+
+
+def _config(args: argparse.Namespace):
+    from torchsfm.config import Config, load_config, with_overrides
+
+    config = load_config(args.config) if args.config else Config()
+    return with_overrides(config, args.set)
+
+
+def _print_summary(summary: dict, out: Path) -> None:
+    print(f"{summary['images'][0]} + {summary['images'][1]}: {summary['putative_matches']} putative matches, "
+          f"{summary['inliers']} inliers, {summary['points']} points, reprojection RMS {summary['reprojection_rms_px']:.3f} px, "
+          f"{summary['seconds']['total']:.2f} s")
+    if "ground_truth" in summary:
+        truth = summary["ground_truth"]
+        print(f"against the ground truth: rotation error {truth['rotation_error_deg']:.3f} deg, "
+              f"translation direction error {truth['translation_direction_error_deg']:.3f} deg")
+    print(f"wrote {out}/model.wrl, points.ply, colmap/, matches.png, summary.json")
+
+
+def _demo(args: argparse.Namespace) -> None:
+    from torchsfm.actions import demo
+
+    _print_summary(demo(args.out, progress=_progress(args.quiet)), args.out)
+
+
+def _two_view(args: argparse.Namespace) -> None:
+    from torchsfm.actions import two_view
+    from torchsfm.io.images import read_intrinsics
+
+    config = _config(args)
+    K = read_intrinsics(args.K)
+    summary = two_view(args.image1, args.image2, K, args.out, config=config, seed=args.seed, progress=_progress(args.quiet))
+    _print_summary(summary, args.out)
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchsfm", description="Structure from motion with PyTorch.")
     commands = parser.add_subparsers(dest="command", required=True)
-    demo = commands.add_parser("demo", help="robust two-view geometry on the bundled sample data")
-    demo.add_argument("--outliers", type=float, default=0.4, help="fraction of matches replaced by random pixels")
-    demo.add_argument("--seed", type=int, default=0)
+
+    demo = commands.add_parser("demo", help="reconstruct the two bundled fountain-P11 images")
+    demo.add_argument("--out", type=Path, default=Path("torchsfm_demo"), help="output folder (default: torchsfm_demo)")
+    demo.add_argument("--quiet", action="store_true", help="no progress messages")
     demo.set_defaults(run=_demo)
+
+    two_view = commands.add_parser("two-view", help="reconstruct two calibrated images")
+    two_view.add_argument("image1", type=Path)
+    two_view.add_argument("image2", type=Path)
+    two_view.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
+    two_view.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
+    two_view.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
+    two_view.add_argument("--out", required=True, type=Path, help="output folder")
+    two_view.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    two_view.add_argument("--quiet", action="store_true", help="no progress messages")
+    two_view.set_defaults(run=_two_view)
     return parser
 
 

@@ -158,13 +158,95 @@ class RelativePoseConfig:
 
 
 @dataclass(frozen=True)
+class HarrisConfig:
+    """Harris corners (§3.2.1, Alg. 3.2.1, Appendix B).
+
+    ``k`` = 0.04 (thesis, after Harris). ``window`` is N of the N×N Gaussian on the gradient
+    products, of the non-maximum suppression and of the biquadric support (thesis: the same N
+    for all three; N = 3). A corner needs R > ``relative_threshold`` × the image's largest R.
+    At most ``max_corners`` are kept; with ``spread_grid`` G > 0 each of G×G cells first keeps
+    its best ceil(max_corners / G²) so that corners cover the image. ``subpixel`` switches the
+    biquadric fit (False: pixel accuracy, for comparison). Corners closer than ``border``
+    pixels to the image edge are dropped (the NCC patches need room). Thresholds and counts are
+    ours: the thesis gives none.
+    """
+
+    k: float = 0.04
+    window: int = 3
+    relative_threshold: float = 1e-4
+    max_corners: int = 2000
+    spread_grid: int = 8
+    subpixel: bool = True
+    border: int = 8
+
+    def __post_init__(self) -> None:
+        _require(self.window >= 3 and self.window % 2 == 1, "window", self.window, "must be an odd number >= 3")
+        _require(0 <= self.relative_threshold < 1, "relative_threshold", self.relative_threshold, "must lie in [0, 1)")
+        _require(self.max_corners >= 8, "max_corners", self.max_corners, "must be >= 8")
+        _require(self.spread_grid >= 0, "spread_grid", self.spread_grid, "must be >= 0")
+        _require(self.border >= 0, "border", self.border, "must be >= 0")
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Putative matches (§3.2.2): NCC candidates, strength measure, relaxation.
+
+    NCC on (2 ``patch_half_size`` + 1)² patches between corners less than ``search_radius``
+    pixels apart, kept above ``ncc_threshold``. ``strength``: ``sm`` ranks candidates by the
+    strength measure (neighbours within ``neighbourhood_radius``, relative distance threshold
+    ``relative_distance_threshold`` = ε_r); ``ncc`` by the correlation alone (the thesis'
+    baseline). ``relaxation``: ``some_winners`` (thesis default, top ``alpha`` of both tables)
+    or ``winner_take_all``; it stops when no candidate above ``strength_threshold`` is left or
+    after ``max_relaxation_iterations``. Values follow Zhang et al. (1995) where the thesis gives
+    none (ε_r = 0.3, NCC > 0.8).
+    """
+
+    patch_half_size: int = 5
+    search_radius: float = 100.0
+    ncc_threshold: float = 0.8
+    strength: str = "sm"
+    neighbourhood_radius: float = 80.0
+    relative_distance_threshold: float = 0.3
+    relaxation: str = "some_winners"
+    alpha: float = 0.6
+    strength_threshold: float = 0.0
+    max_relaxation_iterations: int = 100
+
+    def __post_init__(self) -> None:
+        _require(self.patch_half_size >= 1, "patch_half_size", self.patch_half_size, "must be >= 1")
+        _require(self.search_radius > 0, "search_radius", self.search_radius, "must be > 0")
+        _require(-1 <= self.ncc_threshold < 1, "ncc_threshold", self.ncc_threshold, "must lie in [-1, 1)")
+        _require(self.strength in ("sm", "ncc"), "strength", self.strength, "one of sm, ncc")
+        _require(self.neighbourhood_radius > 0, "neighbourhood_radius", self.neighbourhood_radius, "must be > 0")
+        _require(self.relative_distance_threshold > 0, "relative_distance_threshold", self.relative_distance_threshold, "must be > 0")
+        _require(self.relaxation in ("some_winners", "winner_take_all"), "relaxation", self.relaxation, "one of some_winners, winner_take_all")
+        _require(0 < self.alpha <= 1, "alpha", self.alpha, "must lie in (0, 1]")
+        _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
+
+
+@dataclass(frozen=True)
+class TwoViewConfig:
+    """The two-image pipeline (§3.1). Matched corners must move by a median of at least
+    ``min_median_parallax`` pixels, else the images are reported as having no baseline."""
+
+    min_median_parallax: float = 1.0
+
+    def __post_init__(self) -> None:
+        _require(self.min_median_parallax >= 0, "min_median_parallax", self.min_median_parallax, "must be >= 0")
+
+
+@dataclass(frozen=True)
 class Config:
     """Every tunable of torchsfm, grouped by stage."""
+
+    harris: HarrisConfig = field(default_factory=HarrisConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
 
     fundamental: FundamentalConfig = field(default_factory=FundamentalConfig)
     relative_pose: RelativePoseConfig = field(default_factory=RelativePoseConfig)
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     lm: LMConfig = field(default_factory=LMConfig)
+    two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
 
 
 def _build(cls: type, values: Any, prefix: str) -> Any:

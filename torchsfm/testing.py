@@ -195,3 +195,23 @@ def evaluate_two_view_pair(dataset, i: int, j: int, image_size: tuple[int, int],
         "R_error_deg": rotation_error_deg(pose.R, R_true),
         "t_error_deg": translation_direction_error_deg(pose.t, t_true),
     }
+
+
+def render_squares(squares: list[tuple[float, float, float, float, float]], size: tuple[int, int] = (200, 160),
+                   blur: float = 1.0, background: float = 0.2) -> Tensor:
+    """A grey image (1, H, W) float64 of axis-aligned bright squares with blurred edges.
+
+    Each square is (x0, y0, x1, y1, intensity) in pixels (any sub-pixel position); edges follow
+    a Gaussian-integrated step of std ``blur`` pixels, as a lens would render them, so its
+    corners sit exactly at the given coordinates.
+    """
+    width, height = size
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+
+    def step(distance: Tensor) -> Tensor:
+        return 0.5 * (1 + torch.erf(distance / (blur * 2**0.5)))
+
+    image = torch.full((height, width), background, dtype=torch.float64)
+    for x0, y0, x1, y1, intensity in squares:
+        image = image + intensity * step(xs - x0) * step(x1 - xs) * step(ys - y0) * step(y1 - ys)
+    return image[None]

@@ -88,3 +88,48 @@ def read_oxford_multiview(folder: str | Path) -> OxfordMultiView:
         points3d=_read_matrix(point_files[0]),
         images=sorted((folder / "images").glob("*.jpg")),
     )
+
+
+@dataclass
+class StrechaSequence:
+    """A Strecha multi-view set as prepared in ``../shared/data`` (768×512 JPEGs, one ``.txt`` per image).
+
+    Fields:
+        images: V image paths, in file order.
+        K: (V, 3, 3) intrinsics; R: (V, 3, 3) and t: (V, 3) camera from world (x_cam = R X + t).
+    """
+
+    images: list[Path]
+    K: Tensor
+    R: Tensor
+    t: Tensor
+
+    def relative_pose(self, i: int, j: int) -> tuple[Tensor, Tensor]:
+        """Ground-truth pose of view j relative to view i: rotation (3, 3), unit t (3,)."""
+        R_relative = self.R[j] @ self.R[i].transpose(-1, -2)
+        t_relative = self.t[j] - R_relative @ self.t[i]
+        return R_relative, t_relative / t_relative.norm()
+
+
+def read_strecha(folder: str | Path) -> StrechaSequence:
+    """Read ``NNNN.jpg`` + ``NNNN.txt`` pairs (K, R, t as 7 rows of 3 numbers, '#' comments)."""
+    folder = Path(folder)
+    cameras = sorted(folder.glob("[0-9]*.txt"))
+    if not cameras:
+        raise InputError(f"{folder} holds no Strecha camera files (NNNN.txt)")
+    tables = []
+    for path in cameras:
+        lines = [line for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        try:
+            table = torch.tensor([[float(v) for v in line.split()] for line in lines], dtype=torch.float64)
+        except ValueError as error:
+            raise InputError(f"cannot read camera file {path}: {error}") from None
+        if table.shape != (7, 3):
+            raise InputError(f"camera file {path} must hold 7 rows of 3 numbers (K, R, t), got {tuple(table.shape)}")
+        tables.append(table)
+    tables = torch.stack(tables)
+    images = [path.with_suffix(".jpg") for path in cameras]
+    missing = [str(path) for path in images if not path.exists()]
+    if missing:
+        raise InputError(f"missing images for camera files: {', '.join(missing)}")
+    return StrechaSequence(images=images, K=tables[:, :3], R=tables[:, 3:6], t=tables[:, 6])

@@ -1,0 +1,81 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+from torchsfm.config import MatchingConfig
+from torchsfm.matching.matcher import PutativeMatcher, match_corners
+from torchsfm.matching.ncc import CandidateMatches, extract_patches, ncc_candidates
+from torchsfm.matching.strength import relaxation, strength_measure
+
+
+def _textured(seed=0, size=(96, 128)):
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.rand(1, 1, size[0] // 4, size[1] // 4, generator=generator)
+    return torch.nn.functional.interpolate(noise, size=size, mode="bicubic", align_corners=False)[0]
+
+
+def test_patches_are_zero_mean_unit_norm_and_flat_patches_vanish():
+    image = _textured()
+    points = torch.tensor([[30.3, 40.7], [60.0, 50.5]])
+    patches = extract_patches(image, points, 3)
+    assert patches.shape == (2, 49)
+    assert_close(patches.mean(-1), torch.zeros(2), rtol=0, atol=1e-6)
+    assert_close(patches.norm(dim=-1), torch.ones(2), rtol=0, atol=1e-5)
+    assert (extract_patches(torch.full((1, 32, 32), 0.3), torch.tensor([[16.0, 16.0]]), 3) == 0).all()
+
+
+def test_ncc_of_an_image_with_itself_finds_every_corner():
+    image = _textured()
+    points = torch.rand(50, 2, generator=torch.Generator().manual_seed(1)) * torch.tensor([100.0, 70.0]) + 12
+    candidates = ncc_candidates(image, image, points, points, MatchingConfig(search_radius=30, ncc_threshold=0.5))
+    assert_close(torch.diagonal(candidates.ncc), torch.ones(50), rtol=0, atol=1e-5)
+    distances = (points[candidates.index1] - points[candidates.index2]).norm(dim=-1)
+    assert (distances < 30).all() and (candidates.score > 0.5).all()
+    matches = match_corners(image, image, points, points, MatchingConfig(search_radius=30))
+    assert matches.index1.numel() > 40 and (matches.index1 == matches.index2).all()
+
+
+def _synthetic_candidates(seed=0, n=60):
+    """Points moved by a similarity; each point has its true candidate and two random ones."""
+    generator = torch.Generator().manual_seed(seed)
+    points1 = torch.rand(n, 2, generator=generator, dtype=torch.float64) * 200
+    angle = torch.tensor(0.1, dtype=torch.float64)
+    rotation = torch.stack([torch.stack([angle.cos(), -angle.sin()]), torch.stack([angle.sin(), angle.cos()])])
+    points2 = points1 @ rotation.T * 1.05 + torch.tensor([15.0, -8.0], dtype=torch.float64)
+    true = torch.arange(n)
+    decoys = torch.randint(0, n, (n, 2), generator=generator)
+    index1 = torch.cat([true, true, true])
+    index2 = torch.cat([true, decoys[:, 0], decoys[:, 1]])
+    keep = torch.ones_like(index1, dtype=torch.bool)
+    keep[n:] = index2[n:] != index1[n:]
+    score = torch.cat([0.9 + 0.05 * torch.rand(n, generator=generator, dtype=torch.float64),
+                       0.85 + 0.1 * torch.rand(2 * n, generator=generator, dtype=torch.float64)])
+    candidates = CandidateMatches(index1=index1[keep], index2=index2[keep], score=score[keep], ncc=torch.empty(0))
+    return points1, points2, candidates, n
+
+
+def test_strength_measure_is_symmetric_in_the_two_images():
+    points1, points2, candidates, _ = _synthetic_candidates()
+    config = MatchingConfig(neighbourhood_radius=80)
+    forward = strength_measure(points1, points2, candidates, config)
+    swapped = CandidateMatches(index1=candidates.index2, index2=candidates.index1, score=candidates.score, ncc=torch.empty(0))
+    backward = strength_measure(points2, points1, swapped, config)
+    assert_close(forward, backward, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("mode", ["some_winners", "winner_take_all"])
+def test_relaxation_prefers_the_geometrically_consistent_candidates(mode):
+    points1, points2, candidates, n = _synthetic_candidates(seed=1)
+    config = MatchingConfig(neighbourhood_radius=80, relaxation=mode)
+    strength = strength_measure(points1, points2, candidates, config)
+    index1, index2 = relaxation(candidates, strength, (n, n), config)
+    assert index1.unique().numel() == index1.numel() and index2.unique().numel() == index2.numel()  # one-to-one
+    assert (index1 == index2).float().mean() > 0.95 and index1.numel() > 0.9 * n
+    # NCC alone cannot tell: the decoys score as high as the true candidates
+    ncc1, ncc2 = relaxation(candidates, candidates.score, (n, n), config)
+    assert (ncc1 == ncc2).float().mean() < (index1 == index2).float().mean()
+
+
+def test_matcher_is_a_module():
+    matcher = PutativeMatcher(MatchingConfig(strength="ncc"))
+    assert isinstance(matcher, torch.nn.Module) and "strength='ncc'" in repr(matcher)

@@ -1,0 +1,1 @@
+"""Feature detection: Harris corners with the biquadric sub-pixel fit."""

@@ -1,0 +1,1 @@
+"""Putative matching: NCC candidates in a disc, the strength measure and relaxation."""

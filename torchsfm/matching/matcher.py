@@ -1,0 +1,51 @@
+"""The putative-matching stage: NCC candidates → strength measure → relaxation (Alg. 3.2.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor, nn
+
+from torchsfm.config import MatchingConfig
+from torchsfm.matching.ncc import CandidateMatches, ncc_candidates
+from torchsfm.matching.strength import relaxation, strength_measure
+
+
+@dataclass
+class PutativeMatches:
+    """One-to-one matches between the corners of two images.
+
+    Fields:
+        index1, index2: (M,) int64 corner indices.
+        candidates: the candidate set they were chosen from.
+        strength: (C,) the score each candidate was ranked by (SM, or NCC for the baseline).
+    """
+
+    index1: Tensor
+    index2: Tensor
+    candidates: CandidateMatches
+    strength: Tensor
+
+
+def match_corners(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor,
+                  config: MatchingConfig | None = None) -> PutativeMatches:
+    """Putative matches between the corners of two grey images (1, H, W) (Algorithm 3.2.2)."""
+    config = config or MatchingConfig()
+    candidates = ncc_candidates(image1, image2, points1, points2, config)
+    strength = strength_measure(points1, points2, candidates, config) if config.strength == "sm" else candidates.score
+    index1, index2 = relaxation(candidates, strength, (points1.shape[0], points2.shape[0]), config)
+    return PutativeMatches(index1=index1, index2=index2, candidates=candidates, strength=strength)
+
+
+class PutativeMatcher(nn.Module):
+    """Pipeline stage: (image1, image2, points1, points2) -> :class:`PutativeMatches`."""
+
+    def __init__(self, config: MatchingConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or MatchingConfig()
+
+    def forward(self, image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor) -> PutativeMatches:
+        return match_corners(image1, image2, points1, points2, self.config)
+
+    def extra_repr(self) -> str:
+        return repr(self.config)

@@ -1,0 +1,116 @@
+"""Disambiguating candidate matches: the strength measure and relaxation (thesis §3.2.2.2–3.2.2.3).
+
+The strength measure (eq. 3.2.6–3.2.9 with the ERRATA, after Zhang, Deriche, Faugeras & Luong
+1995) rewards a candidate match (m1i, m2j) for every neighbouring candidate (n1k, n2l) whose
+offsets from m1i and m2j are alike:
+
+    SM(i, j) = c_ij Σ_{k ∈ N(m1i)} max_{l ∈ N(m2j)} c_kl δ(i, j; k, l) / (1 + dist),
+    dist = (d(m1i, n1k) + d(m2j, n2l)) / 2,  r = |d(m1i, n1k) - d(m2j, n2l)| / dist,
+    δ = exp(-r / ε_r) if (n1k, n2l) is a candidate and r < ε_r, else 0,
+
+with the symmetry fix of §3.2.2.2.1, made exact: a neighbour pair (k, l) counts only when l is
+k's best and k is l's best. (The thesis keeps, among the k whose best is the same l, the largest;
+that removes the double counting but is not symmetric when a dropped k has another partner — the
+mutual-best rule gives the same SM whichever image comes first, which is what the fix is for, and
+agrees with the thesis' rule whenever the best partners are unique.) All candidate pairs are evaluated as dense tensors, a block of rows at a time.
+Relaxation then accepts matches iteratively: winner-take-all accepts every candidate that is the
+best of both its points; some-winners-take-all (default) accepts only those in the top α of both
+the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import MatchingConfig
+from torchsfm.matching.ncc import CandidateMatches
+
+_ROW_BLOCK = 512
+
+
+def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatches,
+                     config: MatchingConfig | None = None) -> Tensor:
+    """SM of every candidate match (eq. 3.2.6 with the symmetry fix): (M,).
+
+    Args:
+        points1, points2: (N1, 2), (N2, 2) corner positions.
+        candidates: the candidate match set (indices and NCC scores c).
+        config: neighbourhood radius and ε_r.
+    """
+    config = config or MatchingConfig()
+    i, j, c = candidates.index1, candidates.index2, candidates.score
+    M, N1, N2 = i.numel(), points1.shape[0], points2.shape[0]
+    distances1, distances2 = torch.cdist(points1, points1), torch.cdist(points2, points2)
+    strength = torch.zeros(M, dtype=points1.dtype, device=points1.device)
+    for start in range(0, M, _ROW_BLOCK):
+        rows = slice(start, min(start + _ROW_BLOCK, M))
+        d1 = distances1[i[rows]][:, i]  # (R, M): d(m1i, n1k) for every neighbour candidate (k, l)
+        d2 = distances2[j[rows]][:, j]  # (R, M): d(m2j, n2l)
+        neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
+                     & (i[rows, None] != i[None]) & (j[rows, None] != j[None]))
+        dist = 0.5 * (d1 + d2)
+        r = (d1 - d2).abs() / dist.clamp_min(1e-12)
+        gain = torch.where(neighbour & (r < config.relative_distance_threshold),
+                           torch.exp(-r / config.relative_distance_threshold), 0.0)
+        value = c[None] * gain / (1 + dist)  # (R, M), 0 where (k, l) does not support (i, j)
+        R = value.shape[0]
+        best_of_k = value.new_zeros(R, N1).scatter_reduce(1, i.expand(R, M), value, "amax")
+        best_of_l = value.new_zeros(R, N2).scatter_reduce(1, j.expand(R, M), value, "amax")
+        counted = ((value > 0) & (value == best_of_k.gather(1, i.expand(R, M)))
+                   & (value == best_of_l.gather(1, j.expand(R, M))))  # mutual best: the symmetry fix
+        strength[rows] = c[rows] * torch.where(counted, value, 0.0).sum(-1)
+    return strength
+
+
+def relaxation(candidates: CandidateMatches, strength: Tensor, num_points: tuple[int, int],
+               config: MatchingConfig | None = None) -> tuple[Tensor, Tensor]:
+    """Accept matches iteratively from the candidate set (Algorithm 3.2.2, step 3).
+
+    Args:
+        candidates: the candidate set; strength: (M,) score of each candidate (SM, or NCC for
+            the NCC-only baseline).
+        num_points: (N1, N2), the number of corners in each image.
+        config: ``relaxation`` ("some_winners" or "winner_take_all"), ``alpha``,
+            ``strength_threshold``, ``max_relaxation_iterations``.
+
+    Returns:
+        The accepted matches as (index1, index2) int64 tensors (one-to-one).
+    """
+    config = config or MatchingConfig()
+    i, j = candidates.index1, candidates.index2
+    N1, N2 = num_points
+    active = strength > config.strength_threshold
+    accepted = torch.zeros_like(active)
+    for _ in range(config.max_relaxation_iterations):
+        score = torch.where(active, strength, float("-inf"))
+        best1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, i, score, "amax")
+        best2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, j, score, "amax")
+        potential = active & (score == best1[i]) & (score == best2[j])
+        if not bool(potential.any()):
+            break
+        if config.relaxation == "some_winners":
+            second1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, i, torch.where(score == best1[i], float("-inf"), score), "amax")
+            second2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, j, torch.where(score == best2[j], float("-inf"), score), "amax")
+            runner_up = torch.maximum(second1[i], second2[j]).clamp_min(0.0)
+            ambiguity = 1 - runner_up / score.clamp_min(1e-30)  # eq. 3.2.10
+            selected = potential & _in_top_fraction(score, potential, config.alpha) & _in_top_fraction(ambiguity, potential, config.alpha)
+            if not bool(selected.any()):  # the two tables share no top entry: take the strongest
+                selected = potential & (score == score[potential].max())
+        else:
+            selected = potential
+        accepted |= selected
+        used1 = torch.zeros(N1, dtype=torch.bool, device=i.device).index_fill_(0, i[selected], True)
+        used2 = torch.zeros(N2, dtype=torch.bool, device=j.device).index_fill_(0, j[selected], True)
+        active &= ~used1[i] & ~used2[j]
+    return i[accepted], j[accepted]
+
+
+def _in_top_fraction(values: Tensor, mask: Tensor, fraction: float) -> Tensor:
+    """Entries of ``mask`` whose value is within the top ceil(fraction × count) of the masked values."""
+    count = int(mask.sum())
+    keep = max(1, math.ceil(fraction * count))
+    threshold = torch.topk(values[mask], keep).values[-1]
+    return mask & (values >= threshold)

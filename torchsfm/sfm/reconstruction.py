@@ -1,0 +1,68 @@
+"""The result type of every reconstruction: cameras, 3-D points, colours and observations."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import Camera
+
+
+@dataclass
+class Reconstruction:
+    """A sparse model.
+
+    Fields:
+        cameras: :class:`~torchsfm.camera.Camera` batch, K (V, 3, 3), R (V, 3, 3), t (V, 3),
+            camera from world (the world frame is camera 0's for a two-view model).
+        image_names: V names (file names where known).
+        image_sizes: (V, 2) int64 (width, height).
+        points3d: (P, 3) float64 world points.
+        colors: (P, 3) uint8 RGB.
+        observation_points: (O,) int64 index of the observed point.
+        observation_views: (O,) int64 index of the observing view.
+        keypoints: (O, 2) float64 observed pixels.
+        matches: two-view models only: (M, 4) putative matches (x1, y1, x2, y2), else None.
+        inlier_mask: two-view models only: (M,) bool, the matches kept by the geometry.
+        timings: seconds per pipeline stage.
+    """
+
+    cameras: Camera
+    image_names: list[str]
+    image_sizes: Tensor
+    points3d: Tensor
+    colors: Tensor
+    observation_points: Tensor
+    observation_views: Tensor
+    keypoints: Tensor
+    matches: Tensor | None = None
+    inlier_mask: Tensor | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def num_views(self) -> int:
+        return self.cameras.K.shape[0]
+
+    @property
+    def num_points(self) -> int:
+        return self.points3d.shape[0]
+
+    def observation_errors(self) -> Tensor:
+        """Reprojection error (pixels) of every observation: (O,)."""
+        views = self.observation_views
+        camera = Camera(self.cameras.K[views], self.cameras.R[views], self.cameras.t[views], self.cameras.distortion[views])
+        projected = camera.project(self.points3d[self.observation_points][:, None])[:, 0]
+        return (projected - self.keypoints).norm(dim=-1)
+
+    def point_errors(self) -> Tensor:
+        """Per-point RMS reprojection error over its observations (pixels): (P,)."""
+        squared = torch.zeros(self.num_points, dtype=self.points3d.dtype).index_add_(0, self.observation_points, self.observation_errors() ** 2)
+        counts = torch.bincount(self.observation_points, minlength=self.num_points).clamp_min(1)
+        return (squared / counts).sqrt()
+
+    def reprojection_rms(self) -> float:
+        """RMS reprojection error over all observations (pixels)."""
+        errors = self.observation_errors()
+        return float(errors.square().mean().sqrt()) if errors.numel() else 0.0

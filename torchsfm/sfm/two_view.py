@@ -1,0 +1,117 @@
+"""Two images and K in, a sparse 3-D model out (thesis §3.1, Fig. 3.1), as a sequence of stages.
+
+Harris corners → NCC candidates → strength measure + relaxation → robust F (bucketed RANSAC,
+LM) → E → R, t → polynomial triangulation → :class:`~torchsfm.sfm.reconstruction.Reconstruction`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from torchsfm.camera import Camera, check_intrinsics
+from torchsfm.config import Config
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
+from torchsfm.features.harris import HarrisCorners
+from torchsfm.io.images import to_grey
+from torchsfm.matching.matcher import PutativeMatcher
+from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.sfm.two_view_geometry import RelativePoseEstimator
+
+Progress = Callable[[str], None]
+
+
+def _check_images(image1: Tensor, image2: Tensor) -> None:
+    for name, image in (("image1", image1), ("image2", image2)):
+        if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] not in (1, 3):
+            shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+            raise ShapeError(f"{name} must be a (3, H, W) colour or (1, H, W) grey tensor, got {shape}")
+    if image1.shape[-2:] != image2.shape[-2:]:
+        (h1, w1), (h2, w2) = image1.shape[-2:], image2.shape[-2:]
+        raise InputError(f"the images differ in size: {w1}x{h1} and {w2}x{h2}")
+
+
+def _colours(image: Tensor, points: Tensor) -> Tensor:
+    """RGB (P, 3) float of a (3 or 1, H, W) image at the nearest pixels of (P, 2) points."""
+    H, W = image.shape[-2:]
+    x = points[:, 0].round().long().clamp(0, W - 1)
+    y = points[:, 1].round().long().clamp(0, H - 1)
+    colours = image[:, y, x].T.float()
+    return colours.expand(-1, 3) if colours.shape[1] == 1 else colours
+
+
+class TwoViewReconstruction(nn.Module):
+    """The two-view pipeline as stages: corners, putative matches, relative pose and points.
+
+    ``forward(image1, image2, K1, K2=None)`` takes (3, H, W) colour or (1, H, W) grey images of
+    the same size (uint8 or float in [0, 1]) and (3, 3) intrinsics (K2 defaults to K1).
+    """
+
+    def __init__(self, config: Config | None = None) -> None:
+        super().__init__()
+        self.config = config or Config()
+        self.corners = HarrisCorners(self.config.harris)
+        self.matcher = PutativeMatcher(self.config.matching)
+        self.pose = RelativePoseEstimator(self.config)
+
+    def forward(self, image1: Tensor, image2: Tensor, K1: Tensor, K2: Tensor | None = None, *,
+                names: tuple[str, str] = ("image1", "image2"), generator: torch.Generator | None = None,
+                progress: Progress | None = None) -> Reconstruction:
+        K2 = K1 if K2 is None else K2
+        _check_images(image1, image2)
+        check_intrinsics(K1=K1, K2=K2)
+        K1, K2 = K1.double(), K2.double()
+        timings: dict[str, float] = {}
+        report = progress or (lambda message: None)
+
+        def stage(name: str, function: Callable[[], object]):
+            report(f"{name} ...")
+            start = time.perf_counter()
+            result = function()
+            timings[name] = time.perf_counter() - start
+            return result
+
+        grey = torch.stack([to_grey(image1), to_grey(image2)])
+        corners = stage("corners", lambda: self.corners(grey))
+        points = [corners.of_image(0), corners.of_image(1)]
+        for view, name in enumerate(names):
+            if points[view].shape[0] < 8:
+                raise NotEnoughDataError(f"{name} has {points[view].shape[0]} corners, at least 8 are needed (a textureless image?)")
+        matches = stage("matching", lambda: self.matcher(grey[0], grey[1], points[0], points[1]))
+        x1, x2 = points[0][matches.index1].double(), points[1][matches.index2].double()
+        if x1.shape[0] < 8:
+            raise NotEnoughDataError(f"only {x1.shape[0]} putative matches between {names[0]} and {names[1]}, at least 8 are needed")
+        parallax = float((x2 - x1).norm(dim=-1).median())
+        if parallax < self.config.two_view.min_median_parallax:
+            raise DegenerateConfigurationError(
+                f"{names[0]} and {names[1]} show no baseline: matched corners moved by a median of {parallax:.2f} px "
+                f"(< two_view.min_median_parallax = {self.config.two_view.min_median_parallax})")
+        pose = stage("geometry", lambda: self.pose(x1, x2, K1, K2, generator=generator))
+        inliers = pose.inlier_mask
+        P = int(inliers.sum())
+        colours = (_colours(image1, x1[inliers]) + _colours(image2, x2[inliers])) / 2
+        if image1.dtype != torch.uint8:
+            colours = colours * 255
+        identity = torch.eye(3, dtype=torch.float64)
+        cameras = Camera(K=torch.stack([K1, K2]), R=torch.stack([identity, pose.R.double()]),
+                         t=torch.stack([torch.zeros(3, dtype=torch.float64), pose.t.double()]))
+        point_index = torch.arange(P)
+        return Reconstruction(
+            cameras=cameras,
+            image_names=list(names),
+            image_sizes=torch.tensor([[image1.shape[-1], image1.shape[-2]]] * 2),
+            points3d=pose.points3d.double(),
+            colors=colours.round().clamp(0, 255).to(torch.uint8),
+            observation_points=torch.cat([point_index, point_index]),
+            observation_views=torch.cat([torch.zeros(P, dtype=torch.long), torch.ones(P, dtype=torch.long)]),
+            keypoints=torch.cat([x1[inliers], x2[inliers]]),
+            matches=torch.cat([x1, x2], dim=-1),
+            inlier_mask=inliers,
+            timings=timings,
+        )
+
+    def extra_repr(self) -> str:
+        return f"two_view={self.config.two_view}"

@@ -1,29 +1,102 @@
+"""The command line: the demo, the two-view command, and one clear line per bad input."""
+
+import json
 import subprocess
 import sys
+from pathlib import Path
 
+import pytest
+import torch
+
+from torchsfm.actions import SAMPLE
 from torchsfm.cli import main
-from torchsfm.demo import run_demo
+from torchsfm.io.images import read_image
+from torchsfm.visualization import write_png
+
+IMAGE1, IMAGE2, K_FILE = SAMPLE / "0004.jpg", SAMPLE / "0005.jpg", SAMPLE / "K.txt"
+OUTPUTS = {"model.wrl", "points.ply", "matches.png", "summary.json", "colmap"}
 
 
-def test_demo_runs_on_the_bundled_sample(capsys):
-    assert main(["demo"]) == 0
-    out = capsys.readouterr().out
-    assert "Merton College I" in out and "0-1" in out and "1-2" in out
+def test_demo_writes_every_output_and_recovers_the_ground_truth(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--quiet"]) == 0
+    assert {p.name for p in tmp_path.iterdir()} == OUTPUTS
+    assert {p.name for p in (tmp_path / "colmap").iterdir()} == {"cameras.txt", "images.txt", "points3D.txt"}
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["inliers"] >= 300 and summary["reprojection_rms_px"] < 0.5
+    assert summary["ground_truth"]["rotation_error_deg"] < 0.5
+    assert summary["ground_truth"]["translation_direction_error_deg"] < 2.0
+    assert "against the ground truth" in capsys.readouterr().out
 
 
-def test_demo_recovers_the_ground_truth():
-    for pair in run_demo(outliers=0.4, seed=0):
-        assert pair.rotation_error_deg < 0.5 and pair.translation_error_deg < 2.0
-        assert pair.recall > 0.97 and pair.precision > 0.99
-        assert pair.reprojection_rms_px < 0.5
+def test_two_view_with_overrides_and_progress(tmp_path, capsys):
+    out = tmp_path / "model"
+    code = main(["two-view", str(IMAGE1), str(IMAGE2), "--K", str(K_FILE), "--out", str(out),
+                 "--set", "harris.max_corners=800", "--set", "matching.relaxation=winner_take_all"])
+    assert code == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["harris"]["max_corners"] == 800 and summary["inliers"] >= 100
+    assert "matching ..." in capsys.readouterr().err
 
 
-def test_errors_are_one_line_and_a_nonzero_exit(capsys):
-    assert main(["demo", "--outliers", "2"]) == 2
-    err = capsys.readouterr().err.strip()
-    assert err == "torchsfm: error: outliers must lie in [0, 1), got 2.0"
+def _fails(tmp_path, capsys, arguments, message):
+    out = tmp_path / "out"
+    assert main(["two-view", *arguments, "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torchsfm: error: ") and message in err[0], err
+    assert not out.exists()  # no output files on error
+
+
+def test_missing_image(tmp_path, capsys):
+    _fails(tmp_path, capsys, [str(tmp_path / "nope.jpg"), str(IMAGE2), "--K", str(K_FILE)], "no such file")
+
+
+def test_unreadable_image(tmp_path, capsys):
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"not a jpeg")
+    _fails(tmp_path, capsys, [str(bad), str(IMAGE2), "--K", str(K_FILE)], f"cannot read image {bad}")
+
+
+def test_images_of_different_size(tmp_path, capsys):
+    small = tmp_path / "small.png"
+    write_png(small, read_image(IMAGE2)[:, :256, :384])
+    _fails(tmp_path, capsys, [str(IMAGE1), str(small), "--K", str(K_FILE)], "differ in size: 768x512 and 384x256")
+
+
+def test_grey_and_colour_images_both_work(tmp_path):
+    grey = tmp_path / "grey.png"
+    colour = read_image(IMAGE2).float()
+    write_png(grey, (0.299 * colour[0] + 0.587 * colour[1] + 0.114 * colour[2]).round().to(torch.uint8)[None].expand(3, -1, -1))
+    assert main(["two-view", str(IMAGE1), str(grey), "--K", str(K_FILE), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+
+
+@pytest.mark.parametrize("content, message", [
+    ("1 0 0\n0 1 0\n", "3x3 matrix"),
+    ("689 0 380\n0 0 251\n0 0 1\n", "K1 is singular"),
+    ("a b c\n", "must hold numbers"),
+])
+def test_bad_intrinsics(tmp_path, capsys, content, message):
+    K = tmp_path / "K.txt"
+    K.write_text(content)
+    _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE2), "--K", str(K)], message)
+
+
+def test_textureless_image(tmp_path, capsys):
+    flat = tmp_path / "flat.png"
+    write_png(flat, torch.full((3, 512, 768), 128, dtype=torch.uint8))
+    _fails(tmp_path, capsys, [str(flat), str(IMAGE2), "--K", str(K_FILE)], "flat.png has 0 corners")
+
+
+def test_identical_images_have_no_baseline(tmp_path, capsys):
+    _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE1), "--K", str(K_FILE)], "show no baseline")
+
+
+def test_unknown_config_key(tmp_path, capsys):
+    _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE2), "--K", str(K_FILE), "--set", "harris.kk=0.05"], "harris.kk")
+    config = tmp_path / "c.yaml"
+    config.write_text("matching:\n  radius: 3\n")
+    _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE2), "--K", str(K_FILE), "--config", str(config)], "matching.radius")
 
 
 def test_module_entry_point():
     result = subprocess.run([sys.executable, "-m", "torchsfm", "--help"], capture_output=True, text=True)
-    assert result.returncode == 0 and "demo" in result.stdout
+    assert result.returncode == 0 and "two-view" in result.stdout

@@ -55,7 +55,7 @@ def colmap_text(model: Reconstruction) -> dict[str, str]:
         q, t = quaternions[view].tolist(), model.cameras.t[view].tolist()
         images.append(f"{view + 1} " + " ".join(f"{v:.17g}" for v in q + t) + f" {view + 1} {model.image_names[view]}")
         mine = views == view
-        images.append(" ".join(f"{x:.10g} {y:.10g} {p + 1}" for (x, y), p in zip(keypoints[mine].tolist(), points[mine].tolist())))
+        images.append(" ".join(f"{x:.17g} {y:.17g} {p + 1}" for (x, y), p in zip(keypoints[mine].tolist(), points[mine].tolist())))
     tracks: list[list[str]] = [[] for _ in range(P)]
     for view, point, index in zip(views.tolist(), points.tolist(), point2d_index.tolist()):
         tracks[point].append(f"{view + 1} {index}")

@@ -19,23 +19,7 @@ import torch
 
 from torchsfm.config import HarrisConfig
 from torchsfm.features.harris import detect_corners
-from torchsfm.testing import render_squares
-
-
-def scene(seed: int, shift: tuple[float, float]) -> list[tuple[float, float, float, float, float]]:
-    generator = torch.Generator().manual_seed(seed)
-    squares = []
-    for i in range(3):
-        for j in range(2):
-            x0 = 20 + 60 * i + 5 * torch.rand(1, generator=generator).item()
-            y0 = 20 + 70 * j + 5 * torch.rand(1, generator=generator).item()
-            width = 25 + 5 * torch.rand(1, generator=generator).item()
-            squares.append((x0 + shift[0], y0 + shift[1], x0 + width + shift[0], y0 + 30 + shift[1], 0.6))
-    return squares
-
-
-def corners_of(squares) -> torch.Tensor:
-    return torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))], dtype=torch.float64)
+from torchsfm.testing import random_squares, render_squares, square_corners
 
 
 def nearest(points: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -61,9 +45,9 @@ def main() -> None:
     generator = torch.Generator().manual_seed(0)
     for trial in range(args.trials):
         shift = (torch.rand(2, generator=generator, dtype=torch.float64) - 0.5).tolist()
-        first, second = scene(trial, (0.0, 0.0)), scene(trial, shift)
+        first, second = random_squares(trial), random_squares(trial, shift)
         images = torch.stack([render_squares(first, blur=args.blur), render_squares(second, blur=args.blur)])
-        truth = corners_of(first)
+        truth = square_corners(first)
         offset = torch.tensor(shift, dtype=torch.float64)
         for name, config in methods.items():
             config = HarrisConfig(**{**config.__dict__, "max_corners": 100, "spread_grid": 0, "relative_threshold": 0.05})

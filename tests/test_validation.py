@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.validation import add_batch_dim, check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
+from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
 
 
 def test_shapes_bind_names_across_arguments():
@@ -34,10 +34,3 @@ def test_count_distinct_rows():
     x = torch.tensor([[1.0, 2.0], [1.0, 2.0], [2.0, 1.0], [1.0, 3.0], [2.0, 1.0]])
     assert count_distinct_rows(x) == 3
     assert count_distinct_rows(torch.zeros(0, 2)) == 0
-
-
-def test_add_batch_dim():
-    x, added = add_batch_dim(torch.zeros(5, 2), 2)
-    assert added and x.shape == (1, 5, 2)
-    with pytest.raises(ShapeError):
-        add_batch_dim(torch.zeros(1, 1, 5, 2), 2)

@@ -10,6 +10,7 @@ from torch import Tensor
 from torchsfm.camera import project, projection_matrix
 from torchsfm.geometry.fundamental import epipolar_line_distances, fundamental_from_pose
 from torchsfm.geometry.rotation import angle_between, axis_angle_to_rotation, rotation_angle
+from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
 
 
 @dataclass
@@ -170,8 +171,6 @@ def evaluate_two_view_pair(dataset, i: int, j: int, image_size: tuple[int, int],
     the ground-truth P) then run. Returns recall/precision of both inlier masks (and the counts
     behind them, for pooling) and the rotation / translation-direction errors in degrees.
     """
-    from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
-
     generator = torch.Generator().manual_seed(seed)
     K, _, _ = dataset.cameras()
     x1, x2 = dataset.correspondences(i, j)
@@ -215,3 +214,23 @@ def render_squares(squares: list[tuple[float, float, float, float, float]], size
     for x0, y0, x1, y1, intensity in squares:
         image = image + intensity * step(xs - x0) * step(x1 - xs) * step(ys - y0) * step(y1 - ys)
     return image[None]
+
+
+def random_squares(seed: int, shift: tuple[float, float] = (0.0, 0.0)) -> list[tuple[float, float, float, float, float]]:
+    """Six squares at seeded sub-pixel positions in a 200×160 frame (for :func:`render_squares`),
+    all moved by ``shift``: the same seed with two shifts gives two renderings of one scene."""
+    generator = torch.Generator().manual_seed(seed)
+    squares = []
+    for i in range(3):
+        for j in range(2):
+            x0 = 20 + 60 * i + 5 * torch.rand(1, generator=generator).item()
+            y0 = 20 + 70 * j + 5 * torch.rand(1, generator=generator).item()
+            width = 25 + 5 * torch.rand(1, generator=generator).item()
+            squares.append((x0 + shift[0], y0 + shift[1], x0 + width + shift[0], y0 + 30 + shift[1], 0.6))
+    return squares
+
+
+def square_corners(squares: list[tuple[float, float, float, float, float]]) -> Tensor:
+    """The (4 S, 2) float64 corners of :func:`random_squares` squares."""
+    return torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))],
+                        dtype=torch.float64)

@@ -72,15 +72,3 @@ def count_distinct_rows(x: Tensor) -> int:
         order = order[torch.argsort(x[order, column], stable=True)]
     ordered = x[order]
     return 1 + int((ordered[1:] != ordered[:-1]).any(-1).sum()) if x.shape[0] else 0
-
-
-def add_batch_dim(x: Tensor, core_ndim: int) -> tuple[Tensor, bool]:
-    """Return ``x`` with exactly one leading batch dimension and whether one was added.
-
-    ``core_ndim`` is the number of trailing dimensions of a single problem, e.g. 2 for (N, 2).
-    """
-    if x.dim() == core_ndim:
-        return x.unsqueeze(0), True
-    if x.dim() == core_ndim + 1:
-        return x, False
-    raise ShapeError(f"expected {core_ndim} or {core_ndim + 1} dimensions, got shape {tuple(x.shape)}")

@@ -4,22 +4,7 @@ from torch.testing import assert_close
 
 from torchsfm.config import HarrisConfig
 from torchsfm.features.harris import HarrisCorners, biquadric_peaks, detect_corners, harris_response
-from torchsfm.testing import render_squares
-
-
-def _squares(generator, shift=(0.0, 0.0)):
-    squares = []
-    for i in range(3):
-        for j in range(2):
-            x0 = 20 + 60 * i + 5 * torch.rand(1, generator=generator).item()
-            y0 = 20 + 70 * j + 5 * torch.rand(1, generator=generator).item()
-            width = 25 + 5 * torch.rand(1, generator=generator).item()
-            squares.append((x0 + shift[0], y0 + shift[1], x0 + width + shift[0], y0 + 30 + shift[1], 0.6))
-    return squares
-
-
-def _corners_of(squares):
-    return torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))], dtype=torch.float64)
+from torchsfm.testing import random_squares, render_squares, square_corners
 
 
 def _repeatability(subpixel: bool, trials: int = 10) -> torch.Tensor:
@@ -30,12 +15,11 @@ def _repeatability(subpixel: bool, trials: int = 10) -> torch.Tensor:
     for _ in range(trials):
         geometry_seed = int(torch.randint(0, 10_000, (1,), generator=generator))
         shift = (torch.rand(2, generator=generator, dtype=torch.float64) - 0.5).tolist()
-        first = _squares(torch.Generator().manual_seed(geometry_seed))
-        second = _squares(torch.Generator().manual_seed(geometry_seed), shift)
+        first, second = random_squares(geometry_seed), random_squares(geometry_seed, shift)
         images = torch.stack([render_squares(first), render_squares(second)]).float()
         corners = detect_corners(images, config)
         a, b = corners.of_image(0).double(), corners.of_image(1).double()
-        for truth in _corners_of(first):
+        for truth in square_corners(first):
             da, db = (a - truth).norm(dim=-1), (b - truth - torch.tensor(shift)).norm(dim=-1)
             assert da.min() < 3 and db.min() < 3  # found in both renderings (Harris peaks sit ~1-2 px inside)
             errors.append(((b[db.argmin()] - a[da.argmin()]) - torch.tensor(shift)).norm())

@@ -159,10 +159,3 @@ def select_pose(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor | 
     t_best = torch.gather(t, -2, best[..., None, None].expand(*best.shape, 1, 3)).squeeze(-2)
     total = weights.sum(-1) if weights is not None else torch.full_like(counts[..., 0], x1.shape[-2])
     return R_best, t_best, counts.amax(-1) / total.clamp_min(1)
-
-
-def normalized_projections(R: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
-    """([I | 0], [R | t]) for normalized coordinates: (*, 3, 4) each."""
-    P1 = torch.eye(3, 4, dtype=R.dtype, device=R.device).expand(*R.shape[:-2], 3, 4)
-    return P1, torch.cat([R, t[..., None]], dim=-1)
-

@@ -70,17 +70,20 @@ class LMConfig:
     distant starts), since every torchsfm caller starts LM from a linear estimate — with 1e-3 the
     F refinement needs 9 iterations instead of 3 for the same cost. The three tolerances are
     epsilon_1 (gradient infinity norm), epsilon_2 (step relative to the parameters) and a relative
-    cost decrease below which the iteration stops (ours).
+    cost decrease below which the iteration stops (ours). ``damping`` is ``identity`` (mu I, the
+    thesis) or ``diagonal`` (mu diag(JᵀJ), Marquardt's scale-invariant choice; then mu0 = tau).
     """
 
     max_iterations: int = 100
     initial_damping: float = 1e-6
+    damping: str = "identity"
     gradient_tolerance: float = 1e-10
     step_tolerance: float = 1e-10
     cost_tolerance: float = 1e-10
 
     def __post_init__(self) -> None:
         _require(self.max_iterations >= 1, "max_iterations", self.max_iterations, "must be >= 1")
+        _require(self.damping in ("identity", "diagonal"), "damping", self.damping, "one of identity, diagonal")
         for name in ("initial_damping", "gradient_tolerance", "step_tolerance", "cost_tolerance"):
             value = getattr(self, name)
             _require(value > 0 and math.isfinite(value), name, value, "must be a finite number > 0")
@@ -224,6 +227,38 @@ class MatchingConfig:
         _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
 
 
+def _bundle_lm() -> LMConfig:
+    return LMConfig(max_iterations=100, initial_damping=1e-4, damping="diagonal",
+                    gradient_tolerance=1e-10, step_tolerance=1e-10, cost_tolerance=1e-6)
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentConfig:
+    """Sparse bundle adjustment (Appendix D). ``lm`` holds its own LM settings (Marquardt's
+    diagonal damping by default: camera and point parameters have unlike units; the cost
+    tolerance 1e-6 is Ceres' default function tolerance). ``loss``:
+    ``none``, ``huber`` or ``cauchy`` with ``loss_scale`` pixels. ``linear_solver``: ``dense``
+    (Cholesky of the reduced camera system), ``cg`` (preconditioned conjugate gradients) or
+    ``auto`` (dense up to ``dense_limit`` camera parameters). CG stops at a relative residual of
+    ``cg_tolerance`` or after ``cg_max_iterations``."""
+
+    lm: LMConfig = field(default_factory=_bundle_lm)
+    loss: str = "none"
+    loss_scale: float = 1.0
+    linear_solver: str = "auto"
+    dense_limit: int = 2000
+    cg_tolerance: float = 1e-6
+    cg_max_iterations: int = 500
+
+    def __post_init__(self) -> None:
+        _require(self.loss in ("none", "huber", "cauchy"), "loss", self.loss, "one of none, huber, cauchy")
+        _require(self.loss_scale > 0, "loss_scale", self.loss_scale, "must be > 0")
+        _require(self.linear_solver in ("auto", "dense", "cg"), "linear_solver", self.linear_solver, "one of auto, dense, cg")
+        _require(self.dense_limit >= 1, "dense_limit", self.dense_limit, "must be >= 1")
+        _require(self.cg_tolerance > 0, "cg_tolerance", self.cg_tolerance, "must be > 0")
+        _require(self.cg_max_iterations >= 1, "cg_max_iterations", self.cg_max_iterations, "must be >= 1")
+
+
 @dataclass(frozen=True)
 class TwoViewConfig:
     """The two-image pipeline (§3.1). Matched corners must move by a median of at least
@@ -247,6 +282,7 @@ class Config:
     triangulation: TriangulationConfig = field(default_factory=TriangulationConfig)
     lm: LMConfig = field(default_factory=LMConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
+    bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
 
 
 def _build(cls: type, values: Any, prefix: str) -> Any:

@@ -1,17 +1,21 @@
 """The one Levenberg–Marquardt of torchsfm (thesis Appendix C, Nielsen's damping update).
 
-It minimizes ``½‖r(p)‖²`` for B independent problems at once: damping ``mu`` (B,), ``nu`` (B,),
-acceptance and stopping are tensors and each problem stops on its own. Parameters may live on a
-manifold: a ``retract(params, delta)`` maps a tangent step ``delta`` (B, P) to new parameters
-(B, S), and the Jacobian is taken with respect to ``delta`` at 0 (forward-mode autodiff unless
-an analytic ``jacobian`` is given). The damped normal equations ``(JᵀJ + mu I) delta = -Jᵀr``
-are solved by batched Cholesky; a failed factorization counts as a rejected step.
+:func:`minimize` is the loop: it minimizes a cost for B independent problems at once — damping
+``mu`` (B,), ``nu`` (B,), acceptance and stopping are tensors and each problem stops on its own.
+It talks to a problem only through :class:`LMProblem` (cost, linearization, damped solve,
+retraction), so dense problems and the sparse bundle adjustment share the same iteration.
+
+:func:`levenberg_marquardt` wraps the dense case: residuals (B, R) of parameters (B, S) that may
+live on a manifold (a ``retract(params, delta)`` maps a tangent step (B, P) to new parameters;
+the Jacobian is taken with respect to the step at 0, by forward-mode autodiff unless an analytic
+``jacobian`` is given), with the damped normal equations solved by batched Cholesky.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -24,13 +28,40 @@ RetractFn = Callable[[Tensor, Tensor], Tensor]
 _MAX_DAMPING = 1e32
 
 
+class Linearization(Protocol):
+    """A problem linearized at the current parameters.
+
+    ``gradient`` (B, P) is the steepest-descent direction -Jᵀr; ``diagonal`` (B, P) is diag(JᵀJ).
+    """
+
+    gradient: Tensor
+    diagonal: Tensor
+
+    def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
+        """Solve (JᵀJ + D) δ = gradient for a damping matrix D = diag(damping (B, P)).
+        Returns δ (B, P) and a (B,) bool of successful solves."""
+
+
+class LMProblem(Protocol):
+    """What :func:`minimize` needs from a least-squares problem over parameters (B, S)."""
+
+    def cost(self, params: Tensor) -> Tensor:
+        """(B,) cost, ½ Σ ρ(r²) (ρ the identity for plain least squares)."""
+
+    def linearize(self, params: Tensor) -> Linearization:
+        """Gradient, diagonal and damped solver at ``params``."""
+
+    def retract(self, params: Tensor, delta: Tensor) -> Tensor:
+        """Parameters after the tangent step ``delta`` (B, P)."""
+
+
 @dataclass
 class LMResult:
-    """Outcome of :func:`levenberg_marquardt` for B problems.
+    """Outcome of :func:`minimize` for B problems.
 
     Fields:
         params: (B, S) final parameters.
-        initial_cost, cost: (B,) ``½‖r‖²`` before and after.
+        initial_cost, cost: (B,) cost before and after.
         num_iterations: (B,) int64, damped steps tried (accepted or not).
         converged: (B,) bool, stopped by a tolerance rather than by ``max_iterations``.
     """
@@ -40,6 +71,90 @@ class LMResult:
     cost: Tensor
     num_iterations: Tensor
     converged: Tensor
+
+
+def _merge(accept: Tensor, new: Linearization, old: Linearization) -> Linearization:
+    """Per problem, the new linearization where a step was accepted, else the old one."""
+    if bool(accept.all()):
+        return new
+    if not bool(accept.any()):
+        return old
+    return new.where(accept, old)  # only batched (dense) linearizations get here
+
+
+def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
+    """Levenberg–Marquardt with Nielsen's damping update on a batch of problems.
+
+    The damping matrix is ``mu I`` (thesis, ``config.damping = "identity"``) or ``mu diag(JᵀJ)``
+    (Marquardt's scaling, ``"diagonal"``, for parameters of very different units).
+    """
+    cost = problem.cost(params)
+    initial_cost = cost
+    linear = problem.linearize(params)
+    diagonal_damping = config.damping == "diagonal"
+
+    def damping_matrix(mu: Tensor, linear: Linearization) -> Tensor:
+        scale = linear.diagonal.clamp_min(1e-12) if diagonal_damping else torch.ones_like(linear.diagonal)
+        return mu[:, None] * scale
+
+    mu = config.initial_damping * (torch.ones_like(cost) if diagonal_damping else linear.diagonal.amax(-1).clamp_min(1e-300))
+    nu = torch.full_like(mu, 2.0)
+    converged = linear.gradient.abs().amax(-1) <= config.gradient_tolerance
+    active = ~converged
+    iterations = torch.zeros_like(mu, dtype=torch.long)
+    for _ in range(config.max_iterations):
+        if not bool(active.any()):
+            break
+        damping = damping_matrix(mu, linear)
+        delta, solved = linear.solve(damping)
+        delta = torch.where(solved[:, None], delta, 0.0)
+        tiny_step = solved & (delta.norm(dim=-1) <= config.step_tolerance * (params.norm(dim=-1) + config.step_tolerance))
+        candidate = problem.retract(params, delta)
+        cost_new = problem.cost(candidate)
+        predicted = 0.5 * (delta * (damping * delta + linear.gradient)).sum(-1)
+        rho = (cost - cost_new) / predicted.clamp_min(1e-300)
+        accept = active & solved & ~tiny_step & torch.isfinite(cost_new) & (rho > 0)
+        small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
+
+        params = torch.where(accept.reshape(-1, *[1] * (params.dim() - 1)), candidate, params)
+        cost = torch.where(accept, cost_new, cost)
+        if bool(accept.any()):
+            linear = _merge(accept, problem.linearize(params), linear)
+        shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
+        mu = torch.where(accept, mu * shrink, torch.where(active, mu * nu, mu))
+        nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
+
+        iterations = iterations + active.long()
+        small_gradient = linear.gradient.abs().amax(-1) <= config.gradient_tolerance
+        stalled = mu > _MAX_DAMPING
+        converged = converged | (active & (tiny_step | small_decrease | small_gradient | stalled))
+        active = active & ~converged
+    return LMResult(params=params, initial_cost=initial_cost, cost=cost, num_iterations=iterations, converged=converged)
+
+
+class DenseLinearization:
+    """Jᵀ J (B, P, P) and -Jᵀ r of a dense problem; damped solves by batched Cholesky."""
+
+    def __init__(self, jacobian: Tensor, residuals: Tensor) -> None:
+        Jt = jacobian.transpose(-1, -2)
+        self.normal = Jt @ jacobian
+        self.gradient = -(Jt @ residuals[..., None]).squeeze(-1)
+        self.diagonal = torch.diagonal(self.normal, dim1=-2, dim2=-1)
+
+    def where(self, condition: Tensor, other: DenseLinearization) -> DenseLinearization:
+        """Per problem, this linearization where ``condition`` (B,) holds, else ``other``."""
+        blended = DenseLinearization.__new__(DenseLinearization)
+        blended.normal = torch.where(condition[:, None, None], self.normal, other.normal)
+        blended.gradient = torch.where(condition[:, None], self.gradient, other.gradient)
+        blended.diagonal = torch.where(condition[:, None], self.diagonal, other.diagonal)
+        return blended
+
+    def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
+        L, info = torch.linalg.cholesky_ex(self.normal + torch.diag_embed(damping))
+        solved = info == 0
+        eye = torch.eye(L.shape[-1], dtype=L.dtype, device=L.device)
+        delta = torch.cholesky_solve(self.gradient[..., None], torch.where(solved[:, None, None], L, eye)).squeeze(-1)
+        return delta, solved
 
 
 def add_retraction(params: Tensor, delta: Tensor) -> Tensor:
@@ -60,6 +175,19 @@ def forward_jacobian(residuals: ResidualFn, params: Tensor, retract: RetractFn, 
     return columns.permute(1, 2, 0)
 
 
+class _DenseProblem:
+    def __init__(self, residuals: ResidualFn, retract: RetractFn, tangent_dim: int,
+                 jacobian: Callable[[Tensor], Tensor] | None) -> None:
+        self.residuals, self.retract, self.tangent_dim, self.jacobian = residuals, retract, tangent_dim, jacobian
+
+    def cost(self, params: Tensor) -> Tensor:
+        return 0.5 * self.residuals(params).square().sum(-1)
+
+    def linearize(self, params: Tensor) -> DenseLinearization:
+        J = self.jacobian(params) if self.jacobian is not None else forward_jacobian(self.residuals, params, self.retract, self.tangent_dim)
+        return DenseLinearization(J, self.residuals(params))
+
+
 def levenberg_marquardt(
     residuals: ResidualFn,
     params: Tensor,
@@ -69,62 +197,15 @@ def levenberg_marquardt(
     tangent_dim: int | None = None,
     jacobian: Callable[[Tensor], Tensor] | None = None,
 ) -> LMResult:
-    """Minimize ``½‖residuals(p)‖²`` per problem from ``params`` (B, S).
+    """Minimize ``½‖residuals(p)‖²`` per problem from ``params`` (B, S) (dense normal equations).
 
     Args:
         residuals: maps (B, S) parameters to (B, R) residuals; rows must not mix problems.
         params: initial parameters (B, S).
-        config: iteration cap, initial damping tau, tolerances.
+        config: iteration cap, initial damping tau, damping mode, tolerances.
         retract: manifold update; defaults to addition (then ``tangent_dim`` = S).
         tangent_dim: P, the size of a step; required with a custom ``retract``.
         jacobian: optional analytic Jacobian (B, S) -> (B, R, P) at delta = 0.
     """
     P = params.shape[-1] if tangent_dim is None else tangent_dim
-
-    def linearize(p: Tensor) -> tuple[Tensor, Tensor]:
-        J = jacobian(p) if jacobian is not None else forward_jacobian(residuals, p, retract, P)
-        return J.transpose(-1, -2) @ J, J.transpose(-1, -2)
-
-    r = residuals(params)
-    cost = 0.5 * r.square().sum(-1)
-    initial_cost = cost
-    A, Jt = linearize(params)
-    g = -(Jt @ r[..., None]).squeeze(-1)  # (B, P): steepest descent direction
-    eye = torch.eye(P, dtype=params.dtype, device=params.device)
-    mu = config.initial_damping * torch.diagonal(A, dim1=-2, dim2=-1).amax(-1).clamp_min(1e-300)
-    nu = torch.full_like(mu, 2.0)
-    converged = g.abs().amax(-1) <= config.gradient_tolerance
-    active = ~converged
-    iterations = torch.zeros_like(mu, dtype=torch.long)
-    for _ in range(config.max_iterations):
-        if not bool(active.any()):
-            break
-        L, info = torch.linalg.cholesky_ex(A + mu[:, None, None] * eye)
-        solved = info == 0
-        delta = torch.cholesky_solve(g[..., None], torch.where(solved[:, None, None], L, eye)).squeeze(-1)
-        delta = torch.where(solved[:, None], delta, 0.0)
-        tiny_step = solved & (delta.norm(dim=-1) <= config.step_tolerance * (params.norm(dim=-1) + config.step_tolerance))
-        candidate = retract(params, delta)
-        r_new = residuals(candidate)
-        cost_new = 0.5 * r_new.square().sum(-1)
-        predicted = 0.5 * (delta * (mu[:, None] * delta + g)).sum(-1)
-        rho = (cost - cost_new) / predicted.clamp_min(1e-300)
-        accept = active & solved & ~tiny_step & torch.isfinite(cost_new) & (rho > 0)
-        small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
-
-        params = torch.where(accept[:, None], candidate, params)
-        r = torch.where(accept[:, None], r_new, r)
-        cost = torch.where(accept, cost_new, cost)
-        A_new, Jt_new = linearize(params)
-        A = torch.where(accept[:, None, None], A_new, A)
-        g = torch.where(accept[:, None], -(Jt_new @ r[..., None]).squeeze(-1), g)
-        shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
-        mu = torch.where(accept, mu * shrink, torch.where(active, mu * nu, mu))
-        nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
-
-        iterations = iterations + active.long()
-        small_gradient = g.abs().amax(-1) <= config.gradient_tolerance
-        stalled = mu > _MAX_DAMPING
-        converged = converged | (active & (tiny_step | small_decrease | small_gradient | stalled))
-        active = active & ~converged
-    return LMResult(params=params, initial_cost=initial_cost, cost=cost, num_iterations=iterations, converged=converged)
+    return minimize(_DenseProblem(residuals, retract, P, jacobian), params, config)

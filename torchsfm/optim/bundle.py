@@ -1,0 +1,369 @@
+"""Sparse bundle adjustment (thesis Appendix D, after Lourakis & Argyros) on the one LM.
+
+The normal equations of a bundle problem have the arrow shape [[U, W], [Wᵀ, V]] with U block
+diagonal over cameras and V block diagonal (3x3) over points. Each damped step eliminates the
+points by the Schur complement — the per-point blocks V* are inverted as one batch — solves the
+reduced camera system S δc = g_c - W V*⁻¹ g_p (dense Cholesky when small, conjugate gradients
+with a block-Jacobi preconditioner when large) and back-substitutes δp. The iteration itself
+(Nielsen damping, acceptance, stopping) is :func:`torchsfm.optim.lm.minimize`.
+
+Camera models:
+
+* ``pinhole`` — torchsfm's calibrated camera: pixels = K (R X + t) dehomogenized, K fixed;
+  6 parameters per camera (a rotation increment R ← exp([ω]x) R, and t).
+* ``bal`` — Bundle Adjustment in the Large: P = R X + t, p = -P_xy / P_z,
+  x = f (1 + k1 |p|² + k2 |p|⁴) p; 9 parameters per camera (ω, t, f, k1, k2).
+
+Optional robust losses (Huber, Cauchy) reweight observations (iteratively reweighted least
+squares). Gauge: cameras can be held fixed (``fixed_cameras``); the pipeline fixes the first
+camera and lets the damping absorb the remaining scale freedom.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import BundleAdjustmentConfig
+from torchsfm.errors import InputError
+from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
+from torchsfm.optim.lm import minimize
+from torchsfm.validation import check_finite, check_shapes
+
+CAMERA_DOF = {"pinhole": 6, "bal": 9}
+
+
+@dataclass
+class BundleProblem:
+    """Cameras, points and observations (float64).
+
+    Fields:
+        camera_model: ``pinhole`` or ``bal``.
+        rotations: (C, 3, 3) camera from world; translations: (C, 3).
+        intrinsics: ``pinhole``: K (C, 3, 3), held fixed; ``bal``: (C, 3) = (f, k1, k2), adjusted.
+        points: (P, 3) world points.
+        camera_index, point_index: (O,) int64 of each observation.
+        observations: (O, 2) measured image coordinates.
+        fixed_cameras: (C,) bool, cameras held fixed (gauge); none by default.
+    """
+
+    camera_model: str
+    rotations: Tensor
+    translations: Tensor
+    intrinsics: Tensor
+    points: Tensor
+    camera_index: Tensor
+    point_index: Tensor
+    observations: Tensor
+    fixed_cameras: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.camera_model not in CAMERA_DOF:
+            raise InputError(f"camera_model must be one of {', '.join(CAMERA_DOF)}, got {self.camera_model!r}")
+        intrinsics_spec = "C 3 3" if self.camera_model == "pinhole" else "C 3"
+        check_shapes(rotations=(self.rotations, "C 3 3"), translations=(self.translations, "C 3"),
+                     intrinsics=(self.intrinsics, intrinsics_spec), points=(self.points, "P 3"),
+                     camera_index=(self.camera_index, "O"), point_index=(self.point_index, "O"),
+                     observations=(self.observations, "O 2"))
+        check_finite(rotations=self.rotations, translations=self.translations, intrinsics=self.intrinsics,
+                     points=self.points, observations=self.observations)
+        C, P = self.rotations.shape[0], self.points.shape[0]
+        if self.camera_index.numel() and (int(self.camera_index.min()) < 0 or int(self.camera_index.max()) >= C):
+            raise InputError(f"camera_index must lie in [0, {C})")
+        if self.point_index.numel() and (int(self.point_index.min()) < 0 or int(self.point_index.max()) >= P):
+            raise InputError(f"point_index must lie in [0, {P})")
+        if self.fixed_cameras is None:
+            self.fixed_cameras = torch.zeros(C, dtype=torch.bool)
+
+    @property
+    def num_cameras(self) -> int:
+        return self.rotations.shape[0]
+
+    @property
+    def num_points(self) -> int:
+        return self.points.shape[0]
+
+    def depths(self) -> Tensor:
+        """Depth of every observation's point in its camera (positive = in front): (O,)."""
+        c, p = self.camera_index, self.point_index
+        z = ((self.rotations[c] @ self.points[p][..., None])[..., 0] + self.translations[c])[:, 2]
+        return z if self.camera_model == "pinhole" else -z  # BAL cameras look down -z
+
+    def select_points(self, keep: Tensor) -> BundleProblem:
+        """A copy with only the points where ``keep`` (P,) holds, their observations, re-indexed."""
+        new_index = torch.full((self.num_points,), -1, dtype=torch.long)
+        new_index[keep] = torch.arange(int(keep.sum()))
+        observed = keep[self.point_index]
+        return BundleProblem(self.camera_model, self.rotations, self.translations, self.intrinsics, self.points[keep],
+                             self.camera_index[observed], new_index[self.point_index[observed]],
+                             self.observations[observed], self.fixed_cameras)
+
+    def residuals(self) -> Tensor:
+        """Predicted minus observed coordinates: (O, 2)."""
+        return _project(self, self.rotations, self.translations, self.intrinsics, self.points)[0] - self.observations
+
+    def cost(self) -> float:
+        """½ Σ ‖r‖² (pixels²)."""
+        return float(0.5 * self.residuals().square().sum())
+
+
+@dataclass
+class BundleResult:
+    """Outcome of :func:`bundle_adjust`: the adjusted problem and ½ Σ ‖r‖² before and after."""
+
+    problem: BundleProblem
+    initial_cost: float
+    final_cost: float
+    num_iterations: int
+    converged: bool
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _project(problem: BundleProblem, R: Tensor, t: Tensor, intrinsics: Tensor, points: Tensor, jacobians: bool = False):
+    """Predictions (O, 2) and, on request, d prediction / d(camera tangent) (O, 2, dc) and
+    d prediction / d point (O, 2, 3)."""
+    c, p = problem.camera_index, problem.point_index
+    rotated = (R[c] @ points[p][..., None]).squeeze(-1)  # R X: (O, 3)
+    camera_point = rotated + t[c]
+    x, y, z = camera_point.unbind(-1)
+    if problem.camera_model == "pinhole":
+        K = intrinsics[c]
+        normalized = camera_point[:, :2] / z[:, None]
+        prediction = (K[:, :2, :2] @ normalized[..., None]).squeeze(-1) + K[:, :2, 2]
+        if not jacobians:
+            return prediction, None, None
+        d_normalized = torch.zeros(x.shape[0], 2, 3, dtype=x.dtype, device=x.device)
+        d_normalized[:, 0, 0], d_normalized[:, 1, 1] = 1 / z, 1 / z
+        d_normalized[:, 0, 2], d_normalized[:, 1, 2] = -x / z**2, -y / z**2
+        d_camera_point = K[:, :2, :2] @ d_normalized  # (O, 2, 3)
+        d_camera = torch.cat([d_camera_point @ -skew(rotated), d_camera_point], dim=-1)  # δω (left), δt
+        return prediction, d_camera, d_camera_point @ R[c]
+    f, k1, k2 = intrinsics[c].unbind(-1)
+    projected = -camera_point[:, :2] / z[:, None]  # (O, 2)
+    r2 = projected.square().sum(-1)
+    distortion = 1 + k1 * r2 + k2 * r2 * r2
+    prediction = (f * distortion)[:, None] * projected
+    if not jacobians:
+        return prediction, None, None
+    d_projected = torch.zeros(x.shape[0], 2, 3, dtype=x.dtype, device=x.device)
+    d_projected[:, 0, 0], d_projected[:, 1, 1] = -1 / z, -1 / z
+    d_projected[:, 0, 2], d_projected[:, 1, 2] = x / z**2, y / z**2
+    eye = torch.eye(2, dtype=x.dtype, device=x.device)
+    d_prediction = f[:, None, None] * (distortion[:, None, None] * eye + (2 * k1 + 4 * k2 * r2)[:, None, None] * projected[:, :, None] * projected[:, None, :])
+    d_camera_point = d_prediction @ d_projected  # (O, 2, 3)
+    d_intrinsics = torch.stack([distortion[:, None] * projected, (f * r2)[:, None] * projected, (f * r2 * r2)[:, None] * projected], dim=-1)
+    d_camera = torch.cat([d_camera_point @ -skew(rotated), d_camera_point, d_intrinsics], dim=-1)
+    return prediction, d_camera, d_camera_point @ R[c]
+
+
+def _loss(squared: Tensor, kind: str, scale: float) -> tuple[Tensor, Tensor]:
+    """ρ(s) and ρ'(s) of the robust loss on squared residual norms s (O,)."""
+    if kind == "huber":
+        inside = squared <= scale**2
+        root = squared.clamp_min(1e-300).sqrt()
+        return torch.where(inside, squared, 2 * scale * root - scale**2), torch.where(inside, 1.0, scale / root)
+    if kind == "cauchy":
+        return scale**2 * torch.log1p(squared / scale**2), 1 / (1 + squared / scale**2)
+    return squared, torch.ones_like(squared)
+
+
+class _SchurLinearization:
+    """The arrow-shaped normal equations at one point of a bundle problem (batch of one)."""
+
+    def __init__(self, problem: "_BundleLM", d_camera: Tensor, d_point: Tensor, residuals: Tensor, weights: Tensor) -> None:
+        self.problem = problem
+        bundle = problem.bundle
+        root = weights.sqrt()[:, None, None]
+        Jc, Jp = d_camera * root, d_point * root  # (O, 2, dc), (O, 2, 3)
+        Jc = Jc * problem.free[bundle.camera_index][:, None, :]  # fixed cameras: no columns
+        r = residuals * root[..., 0]
+        C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
+        self.U = torch.zeros(C, dc, dc, dtype=r.dtype).index_add_(0, bundle.camera_index, Jc.transpose(1, 2) @ Jc)
+        self.V = torch.zeros(P, 3, 3, dtype=r.dtype).index_add_(0, bundle.point_index, Jp.transpose(1, 2) @ Jp)
+        self.W = Jc.transpose(1, 2) @ Jp  # (O, dc, 3)
+        g_camera = torch.zeros(C, dc, dtype=r.dtype).index_add_(0, bundle.camera_index, -(Jc.transpose(1, 2) @ r[..., None])[..., 0])
+        g_point = torch.zeros(P, 3, dtype=r.dtype).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
+        self.gradient = torch.cat([g_camera.flatten(), g_point.flatten()])[None]
+        self.diagonal = torch.cat([torch.diagonal(self.U, dim1=1, dim2=2).flatten(), torch.diagonal(self.V, dim1=1, dim2=2).flatten()])[None]
+
+    def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
+        problem, bundle = self.problem, self.problem.bundle
+        C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
+        damping = damping[0]
+        U = self.U + torch.diag_embed(damping[: C * dc].reshape(C, dc))
+        V = self.V + torch.diag_embed(damping[C * dc:].reshape(P, 3))
+        L, info = torch.linalg.cholesky_ex(V)
+        if bool((info != 0).any()):
+            return torch.zeros_like(self.gradient), torch.zeros(1, dtype=torch.bool)
+        V_inverse = torch.cholesky_inverse(L)  # (P, 3, 3): every point block at once
+        g_camera = self.gradient[0, : C * dc].reshape(C, dc)
+        g_point = self.gradient[0, C * dc:].reshape(P, 3)
+        c, p = bundle.camera_index, bundle.point_index
+        Y = self.W @ V_inverse[p]  # (O, dc, 3) = W V*⁻¹
+        rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype).index_add_(0, c, (Y @ g_point[p][..., None])[..., 0])
+        if problem.config.linear_solver == "dense" or (problem.config.linear_solver == "auto" and C * dc <= problem.config.dense_limit):
+            delta_camera, ok = self._dense(U, V_inverse, Y, rhs)
+        else:
+            delta_camera, ok = self._conjugate_gradients(U, V_inverse, Y, rhs)
+        back = g_point - torch.zeros(P, 3, dtype=U.dtype).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
+        delta_point = (V_inverse @ back[..., None])[..., 0]
+        return torch.cat([delta_camera.flatten(), delta_point.flatten()])[None], ok[None]
+
+    def _dense(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+        """S = U* - Σ_p W_p V*_p⁻¹ W_pᵀ, then Cholesky.
+
+        Short tracks: points are processed in groups of equal track length n, one batched
+        product (n dc × 3)(3 × n dc) per group giving every camera-pair block of every point,
+        added into S. Long tracks make those blocks (Σ n_p² dc² numbers) outweigh one GEMM with W
+        laid out densely as (C dc, 3 P), which is then used instead (measured crossover: a block
+        number costs about 100 GEMM flops). Fixed cameras have zero rows in U and W, so only their
+        damping remains on S's diagonal and their step is exactly 0.
+        """
+        problem, bundle = self.problem, self.problem.bundle
+        C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
+        block_numbers = sum(index.numel() for _, index in problem.track_groups) * dc * dc
+        if block_numbers * 100 <= (C * dc) ** 2 * 3 * P:
+            blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype)
+            for observations, block_index in problem.track_groups:  # (P_n, n) observation ids, (P_n n n,) S blocks
+                P_n, n = observations.shape
+                left = Y[observations].reshape(P_n, n * dc, 3)
+                right = self.W[observations].reshape(P_n, n * dc, 3)
+                products = (left @ right.transpose(1, 2)).reshape(P_n, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc)
+                blocks.index_add_(0, block_index, products)
+            reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
+        else:
+            c, p = bundle.camera_index, bundle.point_index
+            Wt = torch.zeros(P, 3, C, dc, dtype=U.dtype)  # Wᵀ laid out point-major: no transposed copies
+            Wt.index_put_((p[:, None], torch.arange(3)[None], c[:, None]), self.W.transpose(1, 2), accumulate=True)
+            Wt = Wt.reshape(P, 3, C * dc)
+            VWt = V_inverse @ Wt  # (P, 3, C dc)
+            reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
+        L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
+        if int(info) != 0:
+            return torch.zeros_like(rhs), torch.tensor(False)
+        return torch.cholesky_solve(rhs.reshape(-1, 1), L).reshape(C, dc), torch.tensor(True)
+
+    def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+        """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks)."""
+        problem, bundle = self.problem, self.problem.bundle
+        C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
+        c, p = bundle.camera_index, bundle.point_index
+
+        def apply(x: Tensor) -> Tensor:  # S x for x (C, dc)
+            through_points = torch.zeros(P, 3, dtype=U.dtype).index_add_(0, p, (self.W.transpose(1, 2) @ x[c][..., None])[..., 0])
+            back = torch.zeros(C, dc, dtype=U.dtype).index_add_(0, c, (Y @ through_points[p][..., None])[..., 0])
+            return (U @ x[..., None])[..., 0] - back
+
+        diagonal_blocks = U - torch.zeros(C, dc, dc, dtype=U.dtype).index_add_(0, c, Y @ self.W.transpose(1, 2))
+        preconditioner = torch.linalg.inv(diagonal_blocks)
+        x = torch.zeros_like(rhs)
+        residual = rhs.clone()
+        z = (preconditioner @ residual[..., None])[..., 0]
+        direction = z.clone()
+        rz = (residual * z).sum()
+        target = problem.config.cg_tolerance * residual.norm()
+        for _ in range(problem.config.cg_max_iterations):
+            if residual.norm() <= target:
+                break
+            Sd = apply(direction)
+            step = rz / (direction * Sd).sum().clamp_min(1e-300)
+            x = x + step * direction
+            residual = residual - step * Sd
+            z = (preconditioner @ residual[..., None])[..., 0]
+            rz_new = (residual * z).sum()
+            direction = z + (rz_new / rz.clamp_min(1e-300)) * direction
+            rz = rz_new
+        return x, torch.isfinite(x).all()
+
+
+def track_groups(camera_index: Tensor, point_index: Tensor, num_cameras: int, num_points: int) -> list[tuple[Tensor, Tensor]]:
+    """Points grouped by track length n: per group, the (P_n, n) observation ids of its points
+    and the (P_n n n,) index of the reduced-camera-system block each observation pair feeds."""
+    order = torch.argsort(point_index, stable=True)
+    counts = torch.bincount(point_index, minlength=num_points)
+    starts = torch.cumsum(counts, 0) - counts
+    groups = []
+    for n in torch.unique(counts[counts > 0]).tolist():
+        points = torch.nonzero(counts == n).flatten()
+        observations = order[starts[points][:, None] + torch.arange(n)[None]]  # (P_n, n)
+        cameras = camera_index[observations]
+        groups.append((observations, (cameras[:, :, None] * num_cameras + cameras[:, None, :]).flatten()))
+    return groups
+
+
+class _BundleLM:
+    """A :class:`~torchsfm.optim.lm.LMProblem` view of a bundle problem (batch of one).
+
+    Parameters are flattened to (1, S): per camera R (9), t (3) and for BAL (f, k1, k2), then
+    the points. Steps are (1, C dc + 3 P).
+    """
+
+    def __init__(self, bundle: BundleProblem, config: BundleAdjustmentConfig) -> None:
+        self.bundle, self.config = bundle, config
+        self.dc = CAMERA_DOF[bundle.camera_model]
+        self.state_size = 12 if bundle.camera_model == "pinhole" else 15
+        self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
+        self.track_groups = track_groups(bundle.camera_index, bundle.point_index, bundle.num_cameras, bundle.num_points)
+
+
+    def pack(self, bundle: BundleProblem) -> Tensor:
+        parts = [bundle.rotations.flatten(1), bundle.translations]
+        if bundle.camera_model == "bal":
+            parts.append(bundle.intrinsics)
+        return torch.cat([torch.cat(parts, dim=1).flatten(), bundle.points.flatten()])[None]
+
+    def unpack(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        C = self.bundle.num_cameras
+        cameras = params[0, : C * self.state_size].reshape(C, self.state_size)
+        points = params[0, C * self.state_size:].reshape(-1, 3)
+        intrinsics = cameras[:, 12:15] if self.bundle.camera_model == "bal" else self.bundle.intrinsics
+        return cameras[:, :9].reshape(C, 3, 3), cameras[:, 9:12], intrinsics, points
+
+    def _weighted(self, params: Tensor, jacobians: bool):
+        R, t, intrinsics, points = self.unpack(params)
+        prediction, d_camera, d_point = _project(self.bundle, R, t, intrinsics, points, jacobians)
+        residuals = prediction - self.bundle.observations
+        rho, weights = _loss(residuals.square().sum(-1), self.config.loss, self.config.loss_scale)
+        return residuals, rho, weights, d_camera, d_point
+
+    def cost(self, params: Tensor) -> Tensor:
+        _, rho, _, _, _ = self._weighted(params, False)
+        return 0.5 * rho.sum()[None]
+
+    def linearize(self, params: Tensor) -> _SchurLinearization:
+        residuals, _, weights, d_camera, d_point = self._weighted(params, True)
+        return _SchurLinearization(self, d_camera, d_point, residuals, weights)
+
+    def retract(self, params: Tensor, delta: Tensor) -> Tensor:
+        C, dc = self.bundle.num_cameras, self.dc
+        R, t, intrinsics, points = self.unpack(params)
+        step_camera = delta[0, : C * dc].reshape(C, dc) * self.free
+        R = axis_angle_to_rotation(step_camera[:, :3]) @ R
+        t = t + step_camera[:, 3:6]
+        parts = [R.flatten(1), t] + ([intrinsics + step_camera[:, 6:9]] if self.bundle.camera_model == "bal" else [])
+        points = points + delta[0, C * dc:].reshape(-1, 3)
+        return torch.cat([torch.cat(parts, dim=1).flatten(), points.flatten()])[None]
+
+
+def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | None = None) -> BundleResult:
+    """Minimize the (robustified) reprojection error over cameras and points.
+
+    Returns a :class:`BundleResult` whose costs are ½ Σ ‖r‖² in pixels² (not robustified) and
+    whose ``problem`` is an adjusted copy (the input is not modified).
+    """
+    import time
+
+    config = config or BundleAdjustmentConfig()
+    start = time.perf_counter()
+    lm_problem = _BundleLM(problem, config)
+    result = minimize(lm_problem, lm_problem.pack(problem), config.lm)
+    R, t, intrinsics, points = lm_problem.unpack(result.params)
+    adjusted = copy.copy(problem)
+    adjusted.rotations, adjusted.translations, adjusted.points = R.clone(), t.clone(), points.clone()
+    adjusted.intrinsics = intrinsics.clone()
+    return BundleResult(problem=adjusted, initial_cost=problem.cost(), final_cost=adjusted.cost(),
+                        num_iterations=int(result.num_iterations[0]), converged=bool(result.converged[0]),
+                        timings={"bundle_adjustment": time.perf_counter() - start})

@@ -5,6 +5,9 @@ Stable entry points (outside code calls these):
 * :func:`estimate_fundamental` — robust F from pixel correspondences.
 * :func:`estimate_relative_pose` — R, t and 3-D points of two calibrated views.
 * :func:`triangulate` — 3-D points from two views by any method of thesis §3.5.
+* :func:`estimate_absolute_pose` — a calibrated camera from 3-D↔2-D pairs.
+* :func:`reconstruct` — a calibrated image sequence to cameras and points.
+* :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
 """
 
 from torchsfm.camera import Camera
@@ -18,6 +21,10 @@ from torchsfm.errors import (
     TorchSfmError,
 )
 from torchsfm.geometry.triangulation import TRIANGULATION_METHODS, triangulate
+from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
+from torchsfm.sfm.absolute_pose import AbsolutePose, estimate_absolute_pose
+from torchsfm.sfm.incremental import reconstruct
+from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view_geometry import (
     FundamentalEstimate,
     RelativePose,
@@ -30,6 +37,9 @@ from torchsfm.sfm.two_view_geometry import (
 __version__ = "0.1.0"
 
 __all__ = [
+    "AbsolutePose",
+    "BundleProblem",
+    "BundleResult",
     "Camera",
     "Config",
     "ConfigError",
@@ -37,15 +47,19 @@ __all__ = [
     "FundamentalEstimate",
     "InputError",
     "NotEnoughDataError",
+    "Reconstruction",
     "RelativePose",
     "RelativePoseEstimator",
     "RobustFundamental",
     "ShapeError",
     "TRIANGULATION_METHODS",
     "TorchSfmError",
+    "bundle_adjust",
+    "estimate_absolute_pose",
     "estimate_fundamental",
     "estimate_relative_pose",
     "load_config",
+    "reconstruct",
     "triangulate",
     "with_overrides",
 ]

@@ -22,6 +22,7 @@ from torchsfm.io.datasets import read_strecha
 from torchsfm.io.images import read_image
 from torchsfm.io.ply import ply_bytes
 from torchsfm.io.vrml import vrml_text
+from torchsfm.sfm.incremental import reconstruct
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
@@ -88,6 +89,55 @@ def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path,
     if progress:
         progress("writing model files ...")
     write_files(Path(out), model_files(model, first, second, summary))
+    return summary
+
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
+
+
+def image_paths(inputs: list[str | Path]) -> list[Path]:
+    """Image files from a list of files and/or folders (a folder contributes its sorted images)."""
+    paths: list[Path] = []
+    for item in map(Path, inputs):
+        if item.is_dir():
+            paths += sorted(p for p in item.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        else:
+            paths.append(item)
+    return paths
+
+
+def reconstruction_summary(model: Reconstruction, seconds: float, config: Config) -> dict:
+    """Views registered, points, track lengths, reprojection RMS and stage times, JSON-ready."""
+    return {
+        "views_registered": model.num_views,
+        "registered": [{"index": index, "image": name} for index, name in zip(model.view_indices, model.image_names)],
+        "unregistered": [{"index": index, "reason": reason} for index, reason in sorted(model.unregistered.items())],
+        "points": model.num_points,
+        "observations": int(model.observation_points.numel()),
+        "mean_track_length": model.observation_points.numel() / max(model.num_points, 1),
+        "reprojection_rms_px": model.reprojection_rms(),
+        "seconds": {**model.timings, "total": seconds},
+        "cameras": [{"image": name, "R": model.cameras.R[v].tolist(), "t": model.cameras.t[v].tolist()}
+                    for v, name in enumerate(model.image_names)],
+        "config": config_to_dict(config),
+    }
+
+
+def reconstruct_sequence(inputs: list[str | Path], K: Tensor, out: str | Path, *, config: Config | None = None,
+                         seed: int = 0, progress: Progress | None = None) -> dict:
+    """Reconstruct images (files or folders) with intrinsics K; write VRML, PLY, COLMAP text and a
+    JSON summary into ``out``. Returns the summary."""
+    config = config or Config()
+    start = time.perf_counter()
+    paths = image_paths(inputs)
+    model = reconstruct(paths, K, config=config, generator=torch.Generator().manual_seed(seed), progress=progress)
+    summary = reconstruction_summary(model, time.perf_counter() - start, config)
+    files: dict[str, bytes | str | Tensor] = {"model.wrl": vrml_text(model), "points.ply": ply_bytes(model.points3d, model.colors),
+                                              "summary.json": json.dumps(summary, indent=2) + "\n"}
+    files.update({f"colmap/{name}": text for name, text in colmap_text(model).items()})
+    if progress:
+        progress("writing model files ...")
+    write_files(Path(out), files)
     return summary
 
 

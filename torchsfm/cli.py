@@ -1,4 +1,4 @@
-"""Command line: ``torchsfm demo | two-view``. Thin: parse, then call :mod:`torchsfm.actions`.
+"""Command line: ``torchsfm demo | two-view | reconstruct``. Thin: parse, then call :mod:`torchsfm.actions`.
 
 Progress goes to stderr; any torchsfm error becomes one line ``torchsfm: error: ...`` on stderr
 and exit status 2, with no output files written.
@@ -58,6 +58,21 @@ def _two_view(args: argparse.Namespace) -> None:
     _print_summary(summary, args.out)
 
 
+def _reconstruct(args: argparse.Namespace) -> None:
+    from torchsfm.actions import reconstruct_sequence
+    from torchsfm.io.images import read_intrinsics
+
+    config = _config(args)
+    K = read_intrinsics(args.K)
+    summary = reconstruct_sequence(args.images, K, args.out, config=config, seed=args.seed, progress=_progress(args.quiet))
+    print(f"{summary['views_registered']} views registered, {summary['points']} points, mean track length "
+          f"{summary['mean_track_length']:.2f}, reprojection RMS {summary['reprojection_rms_px']:.3f} px, "
+          f"{summary['seconds']['total']:.1f} s")
+    for view in summary["unregistered"]:
+        print(f"view {view['index']} not registered: {view['reason']}")
+    print(f"wrote {args.out}/model.wrl, points.ply, colmap/, summary.json")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchsfm", description="Structure from motion with PyTorch.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -77,6 +92,16 @@ def build_parser() -> argparse.ArgumentParser:
     two_view.add_argument("--seed", type=int, default=0, help="seed of every random choice")
     two_view.add_argument("--quiet", action="store_true", help="no progress messages")
     two_view.set_defaults(run=_two_view)
+
+    sequence = commands.add_parser("reconstruct", help="reconstruct a calibrated image sequence")
+    sequence.add_argument("images", nargs="+", type=Path, help="image files and/or folders of images, in sequence order")
+    sequence.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
+    sequence.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
+    sequence.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
+    sequence.add_argument("--out", required=True, type=Path, help="output folder")
+    sequence.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    sequence.add_argument("--quiet", action="store_true", help="no progress messages")
+    sequence.set_defaults(run=_reconstruct)
     return parser
 
 

@@ -227,6 +227,23 @@ class MatchingConfig:
         _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
 
 
+@dataclass(frozen=True)
+class ResectionConfig:
+    """Camera resection (§4.1–4.2): RANSAC with reprojection error (pixels; default threshold
+    2 px, ours), minimal ``solver`` ``p3p`` (calibrated, 3 pairs; default, chosen by
+    benchmarks/resection.py) or ``dlt`` (thesis, 6 pairs), then LM on the pose (``refine``) over
+    the pairs within ``refine_support_factor`` × the threshold."""
+
+    ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0))
+    solver: str = "p3p"
+    refine: bool = True
+    refine_support_factor: float = 1.5
+
+    def __post_init__(self) -> None:
+        _require(self.solver in ("p3p", "dlt"), "solver", self.solver, "one of p3p, dlt")
+        _require(self.refine_support_factor >= 1, "refine_support_factor", self.refine_support_factor, "must be >= 1")
+
+
 def _bundle_lm() -> LMConfig:
     return LMConfig(max_iterations=100, initial_damping=1e-4, damping="diagonal",
                     gradient_tolerance=1e-10, step_tolerance=1e-10, cost_tolerance=1e-6)
@@ -271,6 +288,44 @@ class TwoViewConfig:
 
 
 @dataclass(frozen=True)
+class ReconstructionConfig:
+    """Incremental reconstruction of a sequence (thesis chapter 4).
+
+    Views i and i+1 are matched, and with ``match_skip`` also i and i+2; a pair's matches are
+    kept if the robust F keeps at least ``min_pair_inliers``. The initial pair is the one with
+    most inliers among those whose homography explains at most ``max_homography_ratio`` of the F
+    inliers (``homography_threshold`` px) and whose inliers triangulate with a median angle of at
+    least ``min_initial_angle`` degrees. Each next view is resected from its tracks' 3-D points
+    and needs ``min_resection_inliers``. New points need a triangulation angle of
+    ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
+    ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
+    Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end.
+    """
+
+    match_skip: bool = True
+    min_pair_inliers: int = 30
+    homography_threshold: float = 3.0
+    max_homography_ratio: float = 0.8
+    min_initial_angle: float = 2.0
+    min_resection_inliers: int = 20
+    min_point_angle: float = 1.0
+    max_reprojection_error: float = 2.0
+    min_track_views: int = 2
+    bundle_every: int = 0
+
+    def __post_init__(self) -> None:
+        _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
+        _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")
+        _require(0 < self.max_homography_ratio <= 1, "max_homography_ratio", self.max_homography_ratio, "must lie in (0, 1]")
+        _require(self.min_initial_angle >= 0, "min_initial_angle", self.min_initial_angle, "must be >= 0")
+        _require(self.min_resection_inliers >= 6, "min_resection_inliers", self.min_resection_inliers, "must be >= 6")
+        _require(self.min_point_angle >= 0, "min_point_angle", self.min_point_angle, "must be >= 0")
+        _require(self.max_reprojection_error > 0, "max_reprojection_error", self.max_reprojection_error, "must be > 0")
+        _require(self.min_track_views >= 2, "min_track_views", self.min_track_views, "must be >= 2")
+        _require(self.bundle_every >= 0, "bundle_every", self.bundle_every, "must be >= 0")
+
+
+@dataclass(frozen=True)
 class Config:
     """Every tunable of torchsfm, grouped by stage."""
 
@@ -283,6 +338,8 @@ class Config:
     lm: LMConfig = field(default_factory=LMConfig)
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    resection: ResectionConfig = field(default_factory=ResectionConfig)
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
 
 
 def _build(cls: type, values: Any, prefix: str) -> Any:

@@ -26,6 +26,8 @@ class Reconstruction:
         keypoints: (O, 2) float64 observed pixels.
         matches: two-view models only: (M, 4) putative matches (x1, y1, x2, y2), else None.
         inlier_mask: two-view models only: (M,) bool, the matches kept by the geometry.
+        view_indices: the input index of every view of the model (registered views).
+        unregistered: input views left out of the model, with the reason.
         timings: seconds per pipeline stage.
     """
 
@@ -39,6 +41,8 @@ class Reconstruction:
     keypoints: Tensor
     matches: Tensor | None = None
     inlier_mask: Tensor | None = None
+    view_indices: list[int] = field(default_factory=list)
+    unregistered: dict[int, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
     @property

@@ -1,0 +1,33 @@
+"""Plane-induced homographies: normalized DLT and transfer errors (x2 ~ H x1)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.geometry.fundamental import smallest_right_singular_vector
+from torchsfm.geometry.normalization import hartley_normalize
+
+
+def homography_dlt(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Normalized DLT: (*, N, 2) x2, N >= 4, optional (*, N) weights -> H (*, 3, 3), unit norm."""
+    n1, T1 = hartley_normalize(x1, weights)
+    n2, T2 = hartley_normalize(x2, weights)
+    h1 = to_homogeneous(n1)
+    zero = torch.zeros_like(h1)
+    u, v = n2[..., 0:1], n2[..., 1:2]
+    rows_u = torch.cat([-h1, zero, u * h1], dim=-1)  # u h3ᵀx - h1ᵀx = 0
+    rows_v = torch.cat([zero, -h1, v * h1], dim=-1)
+    A = torch.cat([rows_u, rows_v], dim=-2)
+    w = None if weights is None else torch.cat([weights, weights], dim=-1)
+    H = smallest_right_singular_vector(A, w).reshape(*A.shape[:-2], 3, 3)
+    H = torch.linalg.inv(T2) @ H @ T1
+    return H / H.flatten(-2).norm(dim=-1)[..., None, None].clamp_min(1e-300)
+
+
+def transfer_error(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Squared one-way transfer error ‖x2 - π(H x1)‖² (pixels²): (*, N); +inf where H x1 is at infinity."""
+    mapped = to_homogeneous(x1) @ H.transpose(-1, -2)
+    error = (from_homogeneous(mapped) - x2).square().sum(-1)
+    return torch.where(mapped[..., 2].abs() > 1e-12, error, torch.full_like(error, float("inf")))

@@ -1,0 +1,149 @@
+"""Camera resection from 3-D↔2-D correspondences (thesis §4.1–4.2, Alg. 4.1.1, with the ERRATA).
+
+* :func:`dlt_projection` — the normalized DLT for P (11 DOF, at least 6 pairs; 3-D points scaled
+  to mean distance √3, image points to √2), weighted so one function fits minimal samples and
+  inlier sets.
+* :func:`p3p` — Grunert's solution of the calibrated minimal problem (3 pairs, up to 4 poses;
+  Haralick et al. 1994), batched: the quartic's roots come from companion-matrix eigenvalues and
+  each pose from a 3-point absolute orientation.
+* :func:`pose_from_projection` — (R, t) of a DLT P once K is known.
+* :func:`refine_pose` — LM on the reprojection error over a rotation increment and t
+  (§4.2.1.3, Appendix E), analytic Jacobian.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.config import LMConfig
+from torchsfm.geometry.fundamental import smallest_right_singular_vector
+from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, skew
+from torchsfm.optim.lm import LMResult, levenberg_marquardt
+
+
+def dlt_projection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tensor:
+    """Normalized DLT (Alg. 4.1.1): X (*, N, 3), x (*, N, 2), N >= 6 -> P (*, 3, 4), unit norm."""
+    Xn, T3 = hartley_normalize(X, weights)
+    xn, T2 = hartley_normalize(x, weights)
+    Xh = to_homogeneous(Xn)  # (*, N, 4)
+    zero = torch.zeros_like(Xh)
+    u, v = xn[..., 0:1], xn[..., 1:2]
+    rows_u = torch.cat([-Xh, zero, u * Xh], dim=-1)  # u p3ᵀX - p1ᵀX = 0
+    rows_v = torch.cat([zero, -Xh, v * Xh], dim=-1)
+    A = torch.cat([rows_u, rows_v], dim=-2)  # (*, 2N, 12)
+    w = None if weights is None else torch.cat([weights, weights], dim=-1)
+    P = smallest_right_singular_vector(A, w).reshape(*A.shape[:-2], 3, 4)
+    P = torch.linalg.inv(T2) @ P @ T3
+    return P / P.flatten(-2).norm(dim=-1)[..., None, None].clamp_min(1e-300)
+
+
+def pose_from_projection(P: Tensor, K: Tensor, X: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """(R, t) with P ∝ K [R | t]: K⁻¹P = λ [M | m], R = nearest rotation of ±M, t = m / λ.
+
+    The sign is chosen so that the (optional) points X (*, N, 3) lie in front of the camera
+    (else so that det M > 0). P (*, 3, 4), K (*, 3, 3) -> R (*, 3, 3), t (*, 3).
+    """
+    A = torch.linalg.solve(K, P)
+    M, m = A[..., :3], A[..., 3]
+    sign = torch.sign(torch.linalg.det(M))
+    if X is not None:
+        depth = (X @ M.transpose(-1, -2) + m[..., None, :])[..., 2]
+        sign = torch.sign(depth.sum(-1))
+    sign = torch.where(sign == 0, 1.0, sign).to(P.dtype)
+    M, m = M * sign[..., None, None], m * sign[..., None]
+    scale = torch.linalg.svdvals(M).mean(-1)
+    return nearest_rotation(M), m / scale[..., None]
+
+
+def _absolute_orientation(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """R, t minimizing Σ‖R sᵢ + t - tᵢ‖² (Kabsch/Umeyama without scale): (*, N, 3) x2."""
+    source_mean, target_mean = source.mean(-2, keepdim=True), target.mean(-2, keepdim=True)
+    covariance = (target - target_mean).transpose(-1, -2) @ (source - source_mean)
+    R = nearest_rotation(covariance)
+    return R, (target_mean - source_mean @ R.transpose(-1, -2)).squeeze(-2)
+
+
+def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Grunert's P3P: world points X (*, 3, 3) and unit bearing vectors (*, 3, 3) (rows).
+
+    Returns R (*, 4, 3, 3), t (*, 4, 3) and a (*, 4) validity mask (real, positive-depth roots).
+    """
+    X1, X2, X3 = X.unbind(-2)
+    j1, j2, j3 = bearings.unbind(-2)
+    a2 = (X2 - X3).square().sum(-1)
+    b2 = (X1 - X3).square().sum(-1)
+    c2 = (X1 - X2).square().sum(-1)
+    cos_alpha, cos_beta, cos_gamma = (j2 * j3).sum(-1), (j1 * j3).sum(-1), (j1 * j2).sum(-1)
+    p = (a2 - c2) / b2
+    q = (a2 + c2) / b2
+    A4 = (p - 1) ** 2 - 4 * c2 / b2 * cos_alpha**2
+    A3 = 4 * (p * (1 - p) * cos_beta - (1 - q) * cos_alpha * cos_gamma + 2 * c2 / b2 * cos_alpha**2 * cos_beta)
+    A2 = 2 * (p**2 - 1 + 2 * p**2 * cos_beta**2 + 2 * (b2 - c2) / b2 * cos_alpha**2
+              - 4 * q * cos_alpha * cos_beta * cos_gamma + 2 * (b2 - a2) / b2 * cos_gamma**2)
+    A1 = 4 * (-p * (1 + p) * cos_beta + 2 * a2 / b2 * cos_gamma**2 * cos_beta - (1 - q) * cos_alpha * cos_gamma)
+    A0 = (1 + p) ** 2 - 4 * a2 / b2 * cos_gamma**2
+    coefficients = torch.stack([A3, A2, A1, A0], dim=-1) / A4[..., None]
+    companion = torch.zeros(*A4.shape, 4, 4, dtype=X.dtype, device=X.device)
+    companion[..., 0, :] = -coefficients
+    companion[..., 1, 0] = companion[..., 2, 1] = companion[..., 3, 2] = 1.0
+    roots = torch.linalg.eigvals(companion)  # (*, 4)
+    v = roots.real
+    real = roots.imag.abs() <= 1e-6 * (1 + roots.abs())
+    u = ((p[..., None] - 1) * v**2 - 2 * p[..., None] * cos_beta[..., None] * v + 1 + p[..., None]) / (2 * (cos_gamma[..., None] - v * cos_alpha[..., None]))
+    s1_squared = c2[..., None] / (1 + u**2 - 2 * u * cos_gamma[..., None])
+    s1 = s1_squared.clamp_min(0).sqrt()
+    depths = torch.stack([s1, u * s1, v * s1], dim=-1)  # (*, 4, 3)
+    in_camera = depths[..., :, None] * bearings[..., None, :, :]  # (*, 4, 3, 3)
+    R, t = _absolute_orientation(X[..., None, :, :].expand_as(in_camera), in_camera)
+    valid = real & (s1_squared > 0) & (depths > 0).all(-1) & torch.isfinite(R).flatten(-2).all(-1) & torch.isfinite(t).all(-1)
+    return R, t, valid
+
+
+def reprojection_errors(P: Tensor, X: Tensor, x: Tensor) -> Tensor:
+    """Squared reprojection errors (pixels²): P (*, 3, 4), X (*, N, 3), x (*, N, 2) -> (*, N);
+    points behind the camera get +inf."""
+    projected = to_homogeneous(X) @ P.transpose(-1, -2)
+    error = (from_homogeneous(projected) - x).square().sum(-1)
+    return torch.where(projected[..., 2] > 0, error, torch.full_like(error, float("inf")))
+
+
+def refine_pose(R: Tensor, t: Tensor, X: Tensor, x: Tensor, K: Tensor, weights: Tensor, config: LMConfig
+                ) -> tuple[Tensor, Tensor, LMResult]:
+    """LM on Σ wᵢ ‖π(K (R Xᵢ + t)) - xᵢ‖² over R ← exp([ω]x) R and t.
+
+    R (B, 3, 3), t (B, 3), X (B, N, 3), x (B, N, 2), K (B, 3, 3), weights (B, N).
+    """
+    root = weights.sqrt()
+
+    def unpack(state: Tensor) -> tuple[Tensor, Tensor]:
+        return state[:, :9].reshape(-1, 3, 3), state[:, 9:]
+
+    def residuals(state: Tensor) -> Tensor:
+        R, t = unpack(state)
+        camera = X @ R.transpose(-1, -2) + t[:, None]
+        pixels = from_homogeneous(camera @ K.transpose(-1, -2))
+        return ((pixels - x) * root[..., None]).flatten(1)
+
+    def jacobian(state: Tensor) -> Tensor:
+        R, t = unpack(state)
+        rotated = X @ R.transpose(-1, -2)
+        camera = rotated + t[:, None]
+        cx, cy, z = camera.unbind(-1)
+        d_normalized = torch.zeros(*camera.shape[:-1], 2, 3, dtype=X.dtype, device=X.device)
+        d_normalized[..., 0, 0], d_normalized[..., 1, 1] = 1 / z, 1 / z
+        d_normalized[..., 0, 2], d_normalized[..., 1, 2] = -cx / z**2, -cy / z**2
+        d_camera = K[:, None, :2, :2] @ d_normalized  # (B, N, 2, 3)
+        J = torch.cat([d_camera @ -skew(rotated), d_camera], dim=-1) * root[..., None, None]  # (B, N, 2, 6)
+        return J.flatten(1, 2)
+
+    def retract(state: Tensor, delta: Tensor) -> Tensor:
+        R, t = unpack(state)
+        return torch.cat([(axis_angle_to_rotation(delta[:, :3]) @ R).flatten(1), t + delta[:, 3:]], dim=-1)
+
+    result = levenberg_marquardt(residuals, torch.cat([R.flatten(1), t], dim=-1), config, retract=retract,
+                                 tangent_dim=6, jacobian=jacobian)
+    R, t = unpack(result.params)
+    return R, t, result

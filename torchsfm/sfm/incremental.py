@@ -1,0 +1,374 @@
+"""Incremental reconstruction of a calibrated sequence (thesis chapter 4, Fig. 4.1–4.2).
+
+Corners of every view (one batched Harris call) → putative matches of views (i, i+1) and
+(i, i+2), verified by a robust F → tracks → an initial pair (enough inliers, not explained by a
+homography, enough parallax) reconstructed by the two-view geometry → repeatedly: the view that
+sees most reconstructed tracks is resected (RANSAC + LM) and its new tracks triangulated →
+sparse bundle adjustment (optionally every k views, always at the end) → outlier observations
+removed and the model adjusted once more.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import Camera, check_intrinsics, project, projection_matrix
+from torchsfm.config import Config, RansacConfig
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, TorchSfmError
+from torchsfm.features.harris import detect_corners
+from torchsfm.geometry.triangulation import triangulate_points
+from torchsfm.io.images import read_image, to_grey
+from torchsfm.matching.matcher import match_corners
+from torchsfm.optim.bundle import BundleProblem, bundle_adjust
+from torchsfm.robust.models import HomographyModel
+from torchsfm.robust.ransac import ransac
+from torchsfm.sfm.absolute_pose import estimate_absolute_pose
+from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.sfm.tracks import Tracks, build_tracks
+from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class _PairMatches:
+    index1: Tensor
+    index2: Tensor
+    homography_ratio: float
+
+
+def _triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
+    """Angle (degrees) between the rays from two centres (3,) to points X (N, 3): (N,)."""
+    a, b = centre1 - X, centre2 - X
+    cosine = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-300)
+    return torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))
+
+
+class _Model:
+    """The growing reconstruction: poses of registered views and a 3-D point per track."""
+
+    def __init__(self, tracks: Tracks, corners: list[Tensor], K: Tensor, config: Config) -> None:
+        self.tracks, self.corners, self.K, self.config = tracks, corners, K, config
+        V = len(corners)
+        self.R = torch.eye(3, dtype=torch.float64).repeat(V, 1, 1)
+        self.t = torch.zeros(V, 3, dtype=torch.float64)
+        self.registered = torch.zeros(V, dtype=torch.bool)
+        self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
+        self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
+        self.pixels = torch.stack([corners[v][c] for v, c in zip(tracks.view.tolist(), tracks.corner.tolist())]) \
+            if tracks.view.numel() else torch.zeros(0, 2, dtype=torch.float64)
+
+    def centre(self, view: int) -> Tensor:
+        return -self.R[view].T @ self.t[view]
+
+    def projection(self, view: int) -> Tensor:
+        return projection_matrix(self.K[view], self.R[view], self.t[view])
+
+    def observation_errors(self) -> Tensor:
+        """Reprojection error of every track observation in a registered view with a point
+        (+inf elsewhere): (T,)."""
+        view, track = self.tracks.view, self.tracks.track
+        usable = self.registered[view] & self.has_point[track]
+        errors = torch.full((view.numel(),), float("inf"), dtype=torch.float64)
+        if bool(usable.any()):
+            camera = Camera(self.K[view[usable]], self.R[view[usable]], self.t[view[usable]])
+            camera_points = camera.world_to_camera(self.points[track[usable]][:, None])[:, 0]
+            projected = camera.project(self.points[track[usable]][:, None])[:, 0]
+            error = (projected - self.pixels[usable]).norm(dim=-1)
+            errors[usable] = torch.where(camera_points[:, 2] > 0, error, float("inf"))
+        return errors
+
+    def triangulate_new(self, view: int) -> int:
+        """Triangulate the tracks seen by ``view`` and another registered view that have no point
+        yet, each with the partner view of widest baseline; keep the well-conditioned ones."""
+        settings = self.config.reconstruction
+        view_of, track_of = self.tracks.view, self.tracks.track
+        in_view = view_of == view
+        candidates = torch.zeros(self.tracks.num_tracks, dtype=torch.bool)
+        candidates[track_of[in_view]] = True
+        candidates &= ~self.has_point
+        partner_observation = candidates[track_of] & self.registered[view_of] & (view_of != view)
+        if not bool(partner_observation.any()):
+            return 0
+        distances = torch.stack([(self.centre(v) - self.centre(view)).norm() for v in range(len(self.corners))])
+        # for every candidate track: its registered partner observation farthest from the view
+        score = torch.where(partner_observation, distances[view_of], -1.0)
+        best = torch.full((self.tracks.num_tracks,), -1.0, dtype=torch.float64).scatter_reduce(0, track_of, score, "amax")
+        chosen = partner_observation & (score == best[track_of])
+        chosen_tracks, first = torch.unique(track_of[chosen], return_inverse=True)
+        partner_index = torch.full((chosen_tracks.numel(),), -1, dtype=torch.long).scatter_(0, first, torch.nonzero(chosen).flatten())
+        own_index = torch.full((self.tracks.num_tracks,), -1, dtype=torch.long)
+        own_index[track_of[in_view]] = torch.nonzero(in_view).flatten()
+        own_index = own_index[chosen_tracks]
+        added = 0
+        partners = view_of[partner_index]
+        for partner in torch.unique(partners).tolist():
+            mine = partners == partner
+            x_view, x_partner = self.pixels[own_index[mine]], self.pixels[partner_index[mine]]
+            P_view, P_partner = self.projection(view), self.projection(partner)
+            X = triangulate_points(x_partner, x_view, P_partner, P_view, self.config.triangulation)
+            good = self._acceptable(X, [(partner, x_partner), (view, x_view)])
+            tracks = chosen_tracks[mine][good]
+            self.points[tracks], self.has_point[tracks] = X[good], True
+            added += int(good.sum())
+        return added
+
+    def _acceptable(self, X: Tensor, views: list[tuple[int, Tensor]]) -> Tensor:
+        settings = self.config.reconstruction
+        good = torch.isfinite(X).all(-1)
+        for view, pixels in views:
+            camera_points = X @ self.R[view].T + self.t[view]
+            error = (project(self.projection(view), X) - pixels).norm(dim=-1)
+            good &= (camera_points[:, 2] > 0) & (error < settings.max_reprojection_error)
+        angle = _triangulation_angle(X, self.centre(views[0][0]), self.centre(views[1][0]))
+        return good & (angle >= settings.min_point_angle)
+
+
+def _match_pairs(greys: Tensor, corners: list[Tensor], config: Config, generator: torch.Generator,
+                 report: Progress) -> dict[tuple[int, int], _PairMatches]:
+    """Verified matches of (i, i+1) and, with ``match_skip``, (i, i+2)."""
+    V = len(corners)
+    pairs = [(i, i + 1) for i in range(V - 1)] + ([(i, i + 2) for i in range(V - 2)] if config.reconstruction.match_skip else [])
+    result = {}
+    for i, j in pairs:
+        report(f"matching views {i} and {j}")
+        matches = match_corners(greys[i], greys[j], corners[i].float(), corners[j].float(), config.matching)
+        x1, x2 = corners[i][matches.index1], corners[j][matches.index2]
+        if x1.shape[0] < config.reconstruction.min_pair_inliers:
+            continue
+        try:
+            fundamental = estimate_fundamental(x1, x2, config=config, generator=generator)
+        except TorchSfmError:
+            continue
+        inliers = fundamental.inlier_mask
+        if int(inliers.sum()) < config.reconstruction.min_pair_inliers:
+            continue
+        data = torch.cat([x1[inliers], x2[inliers]], -1)[None]
+        homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
+        homography = ransac(HomographyModel(), data, homography_config, generator=generator)
+        ratio = float(homography.inlier_mask.sum()) / float(inliers.sum())
+        result[(i, j)] = _PairMatches(matches.index1[inliers], matches.index2[inliers], ratio)
+    return result
+
+
+def _initial_pair(pairs: dict[tuple[int, int], _PairMatches], corners: list[Tensor], K: Tensor, config: Config,
+                  generator: torch.Generator) -> tuple[tuple[int, int], Tensor, Tensor, str]:
+    """The first pair (by inlier count) that passes the homography and parallax tests."""
+    settings = config.reconstruction
+    rejected = []
+    for (i, j), match in sorted(pairs.items(), key=lambda item: -item[1].index1.numel()):
+        if match.homography_ratio > settings.max_homography_ratio:
+            rejected.append(f"{i}-{j}: a homography explains {match.homography_ratio:.0%} of its inliers")
+            continue
+        x1, x2 = corners[i][match.index1], corners[j][match.index2]
+        try:
+            pose = estimate_relative_pose(x1, x2, K[i], K[j], config=config, generator=generator)
+        except TorchSfmError as error:
+            rejected.append(f"{i}-{j}: {error}")
+            continue
+        centre2 = -pose.R.T @ pose.t
+        angle = float(_triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), centre2).median())
+        if angle < settings.min_initial_angle:
+            rejected.append(f"{i}-{j}: median triangulation angle {angle:.2f} deg")
+            continue
+        return (i, j), pose.R, pose.t, "; ".join(rejected)
+    raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
+
+
+def _bundle(model: _Model, config: Config, fixed_view: int) -> None:
+    """Adjust the registered cameras and the points with their inlier observations, in place."""
+    errors = model.observation_errors()
+    usable = errors < config.reconstruction.max_reprojection_error
+    views = torch.nonzero(model.registered).flatten()
+    tracks = torch.nonzero(model.has_point).flatten()
+    camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
+    camera_of[views] = torch.arange(views.numel())
+    point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
+    point_of[tracks] = torch.arange(tracks.numel())
+    problem = BundleProblem(
+        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
+        points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
+        point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
+        fixed_cameras=views == fixed_view,
+    )
+    adjusted = bundle_adjust(problem, config=config.bundle_adjustment).problem
+    model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
+
+
+def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str] | None = None,
+                config: Config | None = None, generator: torch.Generator | None = None,
+                progress: Progress | None = None) -> Reconstruction:
+    """Reconstruct a calibrated image sequence.
+
+    Images given as paths are read here; one that cannot be read is listed in ``unregistered``
+    with the reason and the others are reconstructed without it.
+
+    Args:
+        images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1],
+            all the same size.
+        K: intrinsics (3, 3) shared by all views, or (V, 3, 3).
+        names: view names (default: the file names, or ``view0``, ``view1``, ...).
+        config: every stage's settings; generator: the random source of all RANSACs.
+        progress: called with a message at each step.
+
+    Returns:
+        A :class:`~torchsfm.sfm.reconstruction.Reconstruction` of the registered views
+        (``view_indices`` maps them to the input list; ``unregistered`` gives the others with the
+        reason). Scale: the initial pair's baseline is 1.
+    """
+    if len(images) < 2:
+        raise NotEnoughDataError(f"a reconstruction needs at least 2 images, got {len(images)}")
+    names = names or [Path(image).name if isinstance(image, (str, Path)) else f"view{v}" for v, image in enumerate(images)]
+    K = K.double()
+    K = K.expand(len(images), 3, 3) if K.dim() == 2 else K
+    loaded, kept, unreadable = [], [], {}
+    for v, image in enumerate(images):
+        if isinstance(image, (str, Path)):
+            try:
+                image = read_image(image)
+            except InputError as error:
+                unreadable[v] = str(error)
+                continue
+        loaded.append(image)
+        kept.append(v)
+    if len(loaded) < 2:
+        raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
+    model = _reconstruct_views(loaded, K[kept], names=[names[v] for v in kept], config=config, generator=generator, progress=progress)
+    model.view_indices = [kept[v] for v in model.view_indices]
+    model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
+    return model
+
+
+def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str] | None = None, config: Config | None = None,
+                       generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
+    """:func:`reconstruct` on decoded images.
+
+    Args:
+        images: V >= 2 images (3, H, W) or (1, H, W), uint8 or float in [0, 1], all the same size.
+        K: intrinsics (3, 3) shared by all views, or (V, 3, 3).
+        names: view names (default ``view0``, ``view1``, ...).
+        config: every stage's settings; generator: the random source of all RANSACs.
+        progress: called with a message at each step.
+
+    Returns:
+        A :class:`~torchsfm.sfm.reconstruction.Reconstruction` of the registered views
+        (``view_indices`` maps them to the input list; ``unregistered`` gives the others with the
+        reason). Scale: the initial pair's baseline is 1.
+    """
+    config = config or Config()
+    generator = generator or torch.Generator().manual_seed(0)
+    report = progress or (lambda message: None)
+    V = len(images)
+    if V < 2:
+        raise NotEnoughDataError(f"a reconstruction needs at least 2 images, got {V}")
+    names = names or [f"view{v}" for v in range(V)]
+    sizes = {tuple(image.shape[-2:]) for image in images}
+    if len(sizes) != 1 or any(image.dim() != 3 or image.shape[0] not in (1, 3) for image in images):
+        raise InputError(f"all images must be (3 or 1, H, W) of one size, got {sorted({tuple(i.shape) for i in images})}")
+    K = K.double()
+    K = K.expand(V, 3, 3) if K.dim() == 2 else K
+    if K.shape != (V, 3, 3):
+        raise InputError(f"K must be (3, 3) or ({V}, 3, 3), got {tuple(K.shape)}")
+    check_intrinsics(K=K)
+    timings: dict[str, float] = {}
+
+    def timed(name: str, function):
+        start = time.perf_counter()
+        result = function()
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start
+        return result
+
+    greys = torch.stack([to_grey(image) for image in images])
+    report(f"corners of {V} views")
+    detected = timed("corners", lambda: detect_corners(greys, config.harris))
+    corners = [detected.of_image(v).double() for v in range(V)]
+    pairs = timed("matching", lambda: _match_pairs(greys, corners, config, generator, report))
+    tracks = build_tracks([c.shape[0] for c in corners], {key: (m.index1, m.index2) for key, m in pairs.items()})
+    report(f"{tracks.num_tracks} tracks from {len(pairs)} verified pairs")
+    (first, second), R, t, _ = timed("initial pair", lambda: _initial_pair(pairs, corners, K, config, generator))
+    model = _Model(tracks, corners, K, config)
+    model.R[second], model.t[second] = R.double(), t.double()
+    model.registered[[first, second]] = True
+    model.triangulate_new(second)
+    report(f"initial pair {first}-{second}: {int(model.has_point.sum())} points")
+    unregistered: dict[int, str] = {}
+    since_bundle = 0
+    while True:
+        waiting = [v for v in range(V) if not model.registered[v] and v not in unregistered]
+        if not waiting:
+            break
+        seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
+        view = max(waiting, key=lambda v: int(seen[v]))
+        if int(seen[view]) < config.reconstruction.min_resection_inliers:
+            for v in waiting:
+                unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers})"
+            break
+        report(f"registering view {view} ({names[view]}) from {int(seen[view])} points")
+        mine = (tracks.view == view) & model.has_point[tracks.track]
+        try:
+            pose = timed("resection", lambda: estimate_absolute_pose(model.points[tracks.track[mine]], model.pixels[mine], K[view],
+                                                                     config=config, generator=generator))
+        except TorchSfmError as error:
+            unregistered[view] = f"resection failed: {error}"
+            continue
+        if int(pose.inlier_mask.sum()) < config.reconstruction.min_resection_inliers:
+            unregistered[view] = f"resection kept {int(pose.inlier_mask.sum())} inliers (needs {config.reconstruction.min_resection_inliers})"
+            continue
+        model.R[view], model.t[view] = pose.R, pose.t
+        model.registered[view] = True
+        timed("triangulation", lambda: model.triangulate_new(view))
+        since_bundle += 1
+        if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
+            timed("bundle adjustment", lambda: _bundle(model, config, first))
+            since_bundle = 0
+    report(f"bundle adjustment of {int(model.registered.sum())} views and {int(model.has_point.sum())} points")
+    timed("bundle adjustment", lambda: _bundle(model, config, first))
+    # drop outlier observations and weak points, then adjust once more
+    errors = model.observation_errors()
+    inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
+    model.has_point &= inlier_count >= config.reconstruction.min_track_views
+    timed("bundle adjustment", lambda: _bundle(model, config, first))
+    return _result(model, images, names, unregistered, timings)
+
+
+def _result(model: _Model, images: list[Tensor], names: list[str], unregistered: dict[int, str],
+            timings: dict[str, float]) -> Reconstruction:
+    errors = model.observation_errors()
+    tracks = model.tracks
+    keep = errors < model.config.reconstruction.max_reprojection_error
+    views = torch.nonzero(model.registered).flatten()
+    camera_of = torch.full((len(images),), -1, dtype=torch.long)
+    camera_of[views] = torch.arange(views.numel())
+    count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, keep.long())
+    point_tracks = torch.nonzero(model.has_point & (count >= model.config.reconstruction.min_track_views)).flatten()
+    point_of = torch.full((tracks.num_tracks,), -1, dtype=torch.long)
+    point_of[point_tracks] = torch.arange(point_tracks.numel())
+    keep &= point_of[tracks.track] >= 0
+    first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
+        0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
+    colours = torch.stack([images[v][:, int(y), int(x)].expand(3) if images[v].shape[0] == 1 else images[v][:, int(y), int(x)]
+                           for v, (x, y) in zip(tracks.view[first_observation].tolist(), model.pixels[first_observation].round().long().tolist())]) \
+        if point_tracks.numel() else torch.zeros(0, 3)
+    if colours.dtype != torch.uint8:
+        colours = (colours.float() * 255).round().clamp(0, 255).to(torch.uint8)
+    H, W = images[0].shape[-2:]
+    return Reconstruction(
+        cameras=Camera(model.K[views], model.R[views], model.t[views]),
+        image_names=[names[v] for v in views.tolist()],
+        image_sizes=torch.tensor([[W, H]] * views.numel()),
+        points3d=model.points[point_tracks],
+        colors=colours,
+        observation_points=point_of[tracks.track[keep]],
+        observation_views=camera_of[tracks.view[keep]],
+        keypoints=model.pixels[keep],
+        view_indices=views.tolist(),
+        unregistered=unregistered,
+        timings=timings,
+    )
+

@@ -100,3 +100,22 @@ def test_unknown_config_key(tmp_path, capsys):
 def test_module_entry_point():
     result = subprocess.run([sys.executable, "-m", "torchsfm", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "two-view" in result.stdout
+
+
+def test_reconstruct_command_writes_the_model_and_a_summary(shared_data, tmp_path, capsys):
+    folder = shared_data / "strecha_fountain_P11"
+    images = [str(folder / f"000{v}.jpg") for v in range(4)]
+    out = tmp_path / "sequence"
+    assert main(["reconstruct", *images, "--K", str(K_FILE), "--out", str(out)]) == 0
+    assert {p.name for p in out.iterdir()} == {"model.wrl", "points.ply", "colmap", "summary.json"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["views_registered"] == 4 and summary["points"] > 500
+    assert set(summary["seconds"]) >= {"corners", "matching", "bundle adjustment", "total"}
+    captured = capsys.readouterr()
+    assert "registering view" in captured.err and "4 views registered" in captured.out
+
+
+def test_reconstruct_needs_two_images(tmp_path, capsys):
+    assert main(["reconstruct", str(IMAGE1), "--K", str(K_FILE), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    assert "at least 2 images, got 1" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()

@@ -25,7 +25,8 @@ from torchsfm.optim.lm import LMResult, levenberg_marquardt
 
 
 def dlt_projection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tensor:
-    """Normalized DLT (Alg. 4.1.1): X (*, N, 3), x (*, N, 2), N >= 6 -> P (*, 3, 4), unit norm."""
+    """Normalized DLT (Alg. 4.1.1): X (*, N, 3), x (*, N, 2), N >= 6 -> P (*, 3, 4), unit norm,
+    signed so that most (weighted) points have positive depth."""
     Xn, T3 = hartley_normalize(X, weights)
     xn, T2 = hartley_normalize(x, weights)
     Xh = to_homogeneous(Xn)  # (*, N, 4)
@@ -37,6 +38,9 @@ def dlt_projection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tenso
     w = None if weights is None else torch.cat([weights, weights], dim=-1)
     P = smallest_right_singular_vector(A, w).reshape(*A.shape[:-2], 3, 4)
     P = torch.linalg.inv(T2) @ P @ T3
+    in_front = torch.sign(to_homogeneous(X) @ P[..., 2, :, None])[..., 0]  # (*, N): sign of the depths
+    sign = torch.sign((in_front if weights is None else in_front * weights).sum(-1))
+    P = P * torch.where(sign == 0, 1.0, sign)[..., None, None]
     return P / P.flatten(-2).norm(dim=-1)[..., None, None].clamp_min(1e-300)
 
 

@@ -1,0 +1,83 @@
+import pytest
+import torch
+from torch.testing import assert_close
+
+import torchsfm
+from torchsfm.config import LMConfig
+from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
+from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, refine_pose, reprojection_errors
+from torchsfm.geometry.rotation import axis_angle_to_rotation, rotation_angle
+
+DOUBLE = dict(dtype=torch.float64)
+K = torch.tensor([[600.0, 0, 319.5], [0, 610.0, 239.5], [0, 0, 1]], **DOUBLE)
+
+
+def _scene(n=100, noise=0.0, outliers=0.0, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    R = axis_angle_to_rotation(0.4 * torch.randn(3, generator=g, **DOUBLE))
+    t = torch.randn(3, generator=g, **DOUBLE)
+    pixels = torch.rand(n, 2, generator=g, **DOUBLE) * torch.tensor([639.0, 479.0], **DOUBLE)
+    depth = 3 + 5 * torch.rand(n, 1, generator=g, **DOUBLE)
+    X = (torch.cat([pixels, torch.ones(n, 1, **DOUBLE)], -1) @ torch.linalg.inv(K).T * depth - t) @ R
+    x = pixels + noise * torch.randn(n, 2, generator=g, **DOUBLE)
+    truth = torch.ones(n, dtype=torch.bool)
+    m = int(outliers * n)
+    x[:m] = (x[:m] + 50 + 200 * torch.rand(m, 2, generator=g, **DOUBLE)) % torch.tensor([639.0, 479.0], **DOUBLE)
+    truth[:m] = False
+    return X, x, R, t, truth
+
+
+def test_dlt_is_exact_with_six_points_and_more():
+    for n in (6, 50):
+        X, x, R, t, _ = _scene(n)
+        P = dlt_projection(X, x)
+        R_est, t_est = pose_from_projection(P, K, X)
+        assert_close(R_est, R, rtol=0, atol=1e-8)
+        assert_close(t_est, t, rtol=0, atol=1e-8)
+        assert reprojection_errors(P, X, x).max() < 1e-12
+
+
+def test_p3p_finds_the_true_pose_among_its_solutions():
+    for seed in range(50):
+        X, x, R, t, _ = _scene(3, seed=seed)
+        rays = torch.cat([x, torch.ones(3, 1, **DOUBLE)], -1) @ torch.linalg.inv(K).T
+        Rs, ts, valid = p3p(X, rays / rays.norm(dim=-1, keepdim=True))
+        errors = rotation_angle(Rs, R[None]) + (ts - t).norm(dim=-1)
+        assert errors[valid].min() < 1e-6, seed
+
+
+def test_refine_pose_recovers_a_perturbed_pose():
+    X, x, R, t, _ = _scene(60)
+    R0 = axis_angle_to_rotation(torch.tensor([0.02, -0.01, 0.015], **DOUBLE)) @ R
+    R1, t1, result = refine_pose(R0[None], (t + 0.05)[None], X[None], x[None], K[None], torch.ones(1, 60, **DOUBLE), LMConfig())
+    assert_close(R1[0], R, rtol=0, atol=1e-9)
+    assert_close(t1[0], t, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("solver", ["p3p", "dlt"])
+def test_estimate_absolute_pose_with_planted_outliers(solver):
+    X, x, R, t, truth = _scene(200, outliers=0.5, seed=3)
+    config = torchsfm.with_overrides(torchsfm.Config(), [f"resection.solver={solver}"])
+    pose = torchsfm.estimate_absolute_pose(X, x, K, config=config, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(pose.inlier_mask, truth)
+    assert_close(pose.R, R, rtol=0, atol=1e-8)
+    assert_close(pose.t, t, rtol=0, atol=1e-8)
+
+
+def test_noisy_pose_accuracy():
+    errors = []
+    for seed in range(10):
+        X, x, R, t, _ = _scene(300, noise=0.5, outliers=0.3, seed=seed)
+        pose = torchsfm.estimate_absolute_pose(X, x, K, generator=torch.Generator().manual_seed(seed))
+        errors.append(float(rotation_angle(pose.R, R)))
+    assert torch.tensor(errors).median() < 0.05
+
+
+def test_bad_input():
+    X, x, _, _, _ = _scene(20)
+    with pytest.raises(NotEnoughDataError, match="at least 6, got 5"):
+        torchsfm.estimate_absolute_pose(X[:5], x[:5], K)
+    with pytest.raises(ShapeError):
+        torchsfm.estimate_absolute_pose(X, x[:10], K)
+    with pytest.raises(DegenerateConfigurationError, match="K is singular"):
+        torchsfm.estimate_absolute_pose(X, x, torch.zeros(3, 3, **DOUBLE))

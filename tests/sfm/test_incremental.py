@@ -1,0 +1,59 @@
+"""Incremental reconstruction: the Strecha sequences against ground truth, and the bad inputs."""
+
+import pytest
+import torch
+
+import torchsfm
+from torchsfm.errors import NotEnoughDataError
+from torchsfm.evaluation import camera_errors
+from torchsfm.io.datasets import read_strecha
+from torchsfm.visualization import write_png
+
+
+@pytest.mark.parametrize("name", ["strecha_fountain_P11", "strecha_herzjesu_P8"])
+def test_strecha_sequences_against_ground_truth(shared_data, name):
+    sequence = read_strecha(shared_data / name)
+    model = torchsfm.reconstruct(sequence.images, sequence.K, generator=torch.Generator().manual_seed(0))
+    assert model.view_indices == list(range(len(sequence.images))) and not model.unregistered
+    errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R, sequence.t)
+    assert errors.centre.median() < 0.01 * errors.extent
+    assert errors.rotation.median() < 0.3
+    assert model.reprojection_rms() < 0.7
+    assert model.num_points > 1000 and model.observation_points.numel() / model.num_points > 2.5
+
+
+def test_a_single_image_is_refused(shared_data):
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    with pytest.raises(NotEnoughDataError, match="at least 2 images, got 1"):
+        torchsfm.reconstruct(sequence.images[:1], sequence.K[0])
+
+
+def test_an_unreadable_image_in_the_middle_is_left_out(shared_data, tmp_path):
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    broken = tmp_path / "broken.jpg"
+    broken.write_bytes(b"not an image")
+    images = [sequence.images[0], broken, sequence.images[1], sequence.images[2]]
+    model = torchsfm.reconstruct(images, sequence.K[0])
+    assert model.view_indices == [0, 2, 3]
+    assert "cannot read image" in model.unregistered[1]
+
+
+def test_a_view_without_matches_is_reported_and_the_rest_reconstructed(shared_data, tmp_path):
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    noise = tmp_path / "noise.png"
+    write_png(noise, torch.randint(0, 256, (3, 512, 768), generator=torch.Generator().manual_seed(0), dtype=torch.uint8))
+    images = [sequence.images[0], sequence.images[1], noise, sequence.images[2]]
+    model = torchsfm.reconstruct(images, sequence.K[0])
+    assert model.view_indices == [0, 1, 3]
+    assert "reconstructed points" in model.unregistered[2] or "resection" in model.unregistered[2]
+
+
+def test_a_degenerate_first_pair_is_passed_over(shared_data):
+    """Two copies of one image match perfectly but have no baseline (a homography explains them)."""
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    images = [sequence.images[0], sequence.images[0], sequence.images[1], sequence.images[2]]
+    messages = []
+    model = torchsfm.reconstruct(images, sequence.K[0], progress=messages.append)
+    initial = next(message for message in messages if message.startswith("initial pair"))
+    assert not initial.startswith("initial pair 0-1")
+    assert len(model.view_indices) >= 3

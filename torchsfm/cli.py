@@ -85,24 +85,24 @@ def build_parser() -> argparse.ArgumentParser:
     two_view = commands.add_parser("two-view", help="reconstruct two calibrated images")
     two_view.add_argument("image1", type=Path)
     two_view.add_argument("image2", type=Path)
-    two_view.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
-    two_view.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
-    two_view.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
-    two_view.add_argument("--out", required=True, type=Path, help="output folder")
-    two_view.add_argument("--seed", type=int, default=0, help="seed of every random choice")
-    two_view.add_argument("--quiet", action="store_true", help="no progress messages")
+    _job_options(two_view)
     two_view.set_defaults(run=_two_view)
 
     sequence = commands.add_parser("reconstruct", help="reconstruct a calibrated image sequence")
     sequence.add_argument("images", nargs="+", type=Path, help="image files and/or folders of images, in sequence order")
-    sequence.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
-    sequence.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
-    sequence.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
-    sequence.add_argument("--out", required=True, type=Path, help="output folder")
-    sequence.add_argument("--seed", type=int, default=0, help="seed of every random choice")
-    sequence.add_argument("--quiet", action="store_true", help="no progress messages")
+    _job_options(sequence)
     sequence.set_defaults(run=_reconstruct)
     return parser
+
+
+def _job_options(parser: argparse.ArgumentParser) -> None:
+    """The options every reconstruction command takes."""
+    parser.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
+    parser.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -227,6 +227,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
     names = names or [Path(image).name if isinstance(image, (str, Path)) else f"view{v}" for v, image in enumerate(images)]
     K = K.double()
     K = K.expand(len(images), 3, 3) if K.dim() == 2 else K
+    if K.shape != (len(images), 3, 3):
+        raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
+    check_intrinsics(K=K)
     loaded, kept, unreadable = [], [], {}
     for v, image in enumerate(images):
         if isinstance(image, (str, Path)):
@@ -245,37 +248,16 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
     return model
 
 
-def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str] | None = None, config: Config | None = None,
+def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], config: Config | None = None,
                        generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
-    """:func:`reconstruct` on decoded images.
-
-    Args:
-        images: V >= 2 images (3, H, W) or (1, H, W), uint8 or float in [0, 1], all the same size.
-        K: intrinsics (3, 3) shared by all views, or (V, 3, 3).
-        names: view names (default ``view0``, ``view1``, ...).
-        config: every stage's settings; generator: the random source of all RANSACs.
-        progress: called with a message at each step.
-
-    Returns:
-        A :class:`~torchsfm.sfm.reconstruction.Reconstruction` of the registered views
-        (``view_indices`` maps them to the input list; ``unregistered`` gives the others with the
-        reason). Scale: the initial pair's baseline is 1.
-    """
+    """:func:`reconstruct` on decoded images, with K (V, 3, 3) and names given."""
     config = config or Config()
     generator = generator or torch.Generator().manual_seed(0)
     report = progress or (lambda message: None)
     V = len(images)
-    if V < 2:
-        raise NotEnoughDataError(f"a reconstruction needs at least 2 images, got {V}")
-    names = names or [f"view{v}" for v in range(V)]
     sizes = {tuple(image.shape[-2:]) for image in images}
     if len(sizes) != 1 or any(image.dim() != 3 or image.shape[0] not in (1, 3) for image in images):
         raise InputError(f"all images must be (3 or 1, H, W) of one size, got {sorted({tuple(i.shape) for i in images})}")
-    K = K.double()
-    K = K.expand(V, 3, 3) if K.dim() == 2 else K
-    if K.shape != (V, 3, 3):
-        raise InputError(f"K must be (3, 3) or ({V}, 3, 3), got {tuple(K.shape)}")
-    check_intrinsics(K=K)
     timings: dict[str, float] = {}
 
     def timed(name: str, function):

@@ -22,6 +22,7 @@ camera and lets the damping absorb the remaining scale freedom.
 from __future__ import annotations
 
 import copy
+import time
 from dataclasses import dataclass, field
 
 import torch
@@ -354,8 +355,6 @@ def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | No
     Returns a :class:`BundleResult` whose costs are ½ Σ ‖r‖² in pixels² (not robustified) and
     whose ``problem`` is an adjusted copy (the input is not modified).
     """
-    import time
-
     config = config or BundleAdjustmentConfig()
     start = time.perf_counter()
     lm_problem = _BundleLM(problem, config)

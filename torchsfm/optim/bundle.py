@@ -182,8 +182,13 @@ class _SchurLinearization:
         Jc = Jc * problem.free[bundle.camera_index][:, None, :]  # fixed cameras: no columns
         r = residuals * root[..., 0]
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        self.U = torch.zeros(C, dc, dc, dtype=r.dtype).index_add_(0, bundle.camera_index, Jc.transpose(1, 2) @ Jc)
-        self.V = torch.zeros(P, 3, 3, dtype=r.dtype).index_add_(0, bundle.point_index, Jp.transpose(1, 2) @ Jp)
+        # U: one GEMM per camera over its observations; V: one batched product per track length
+        by_camera = torch.split(Jc[problem.camera_order].reshape(-1, dc), problem.camera_rows)
+        self.U = torch.stack([rows.T @ rows for rows in by_camera])
+        self.V = torch.zeros(P, 3, 3, dtype=r.dtype)
+        for observations, _ in problem.track_groups:
+            rows = Jp[observations].reshape(observations.shape[0], -1, 3)  # (P_n, 2 n, 3)
+            self.V[bundle.point_index[observations[:, 0]]] = rows.transpose(1, 2) @ rows
         self.W = Jc.transpose(1, 2) @ Jp  # (O, dc, 3)
         g_camera = torch.zeros(C, dc, dtype=r.dtype).index_add_(0, bundle.camera_index, -(Jc.transpose(1, 2) @ r[..., None])[..., 0])
         g_point = torch.zeros(P, 3, dtype=r.dtype).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
@@ -237,10 +242,10 @@ class _SchurLinearization:
             reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
         else:
             c, p = bundle.camera_index, bundle.point_index
-            Wt = torch.zeros(P, 3, C, dc, dtype=U.dtype)  # Wᵀ laid out point-major: no transposed copies
-            Wt.index_put_((p[:, None], torch.arange(3)[None], c[:, None]), self.W.transpose(1, 2), accumulate=True)
-            Wt = Wt.reshape(P, 3, C * dc)
-            VWt = V_inverse @ Wt  # (P, 3, C dc)
+            Wt, VWt = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
+            where = (p[:, None], torch.arange(3)[None], c[:, None])
+            Wt.index_put_(where, self.W.transpose(1, 2))  # each (point, camera) block is observed once
+            VWt.index_put_(where, Y.transpose(1, 2))  # V*⁻¹ Wᵀ, only the observed blocks
             reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
         L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
         if int(info) != 0:
@@ -308,6 +313,17 @@ class _BundleLM:
         self.state_size = 12 if bundle.camera_model == "pinhole" else 15
         self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
         self.track_groups = track_groups(bundle.camera_index, bundle.point_index, bundle.num_cameras, bundle.num_points)
+        self._buffers: tuple[Tensor, Tensor] | None = None
+        self.camera_order = torch.argsort(bundle.camera_index, stable=True)
+        self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
+
+    def dense_buffers(self) -> tuple[Tensor, Tensor]:
+        """Two zeroed (P, 3, C, dc) buffers for the dense reduced-camera-system product, allocated once
+        (fresh allocations of this size cost more in page faults than the product itself)."""
+        if self._buffers is None:
+            shape = (self.bundle.num_points, 3, self.bundle.num_cameras, self.dc)
+            self._buffers = (torch.zeros(shape, dtype=self.bundle.points.dtype), torch.zeros(shape, dtype=self.bundle.points.dtype))
+        return self._buffers
 
 
     def pack(self, bundle: BundleProblem) -> Tensor:

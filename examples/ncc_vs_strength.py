@@ -17,24 +17,12 @@ import torch
 
 from torchsfm.config import Config, MatchingConfig
 from torchsfm.features.harris import detect_corners
-from torchsfm.geometry.fundamental import fundamental_from_pose, fundamental_from_projections, symmetric_epipolar_distance
-from torchsfm.io.datasets import read_oxford_multiview, read_strecha
+from torchsfm.geometry.fundamental import symmetric_epipolar_distance
+from torchsfm.io.datasets import ground_truth_pairs
 from torchsfm.io.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def pairs(data: Path):
-    """(name, image1, image2, F_true) for every evaluated pair."""
-    for name in ("strecha_fountain_P11", "strecha_herzjesu_P8"):
-        sequence = read_strecha(data / name)
-        for i in range(len(sequence.images) - 1):
-            R, t = sequence.relative_pose(i, i + 1)
-            yield f"{name} {i}-{i + 1}", sequence.images[i], sequence.images[i + 1], fundamental_from_pose(sequence.K[i], sequence.K[i + 1], R, t)
-    merton = read_oxford_multiview(data / "oxford_merton1")
-    for i, j in ((0, 1), (1, 2), (0, 2)):
-        yield f"oxford_merton1 {i}-{j}", merton.images[i], merton.images[j], fundamental_from_projections(merton.P[i], merton.P[j])
 
 
 def main() -> None:
@@ -44,8 +32,9 @@ def main() -> None:
     config = Config()
     print(f"{'pair':26s} {'NCC matches':>12s} {'NCC precision':>14s} {'SM matches':>11s} {'SM precision':>13s}")
     totals = {"ncc": [0, 0], "sm": [0, 0]}
-    for name, path1, path2, F in pairs(args.data):
-        grey = torch.stack([to_grey(read_image(path1)), to_grey(read_image(path2))])
+    for pair in ground_truth_pairs(args.data):
+        name, F = pair.name, pair.F
+        grey = torch.stack([to_grey(read_image(pair.image1)), to_grey(read_image(pair.image2))])
         corners = detect_corners(grey, config.harris)
         points1, points2 = corners.of_image(0), corners.of_image(1)
         cells = []

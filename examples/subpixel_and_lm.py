@@ -22,6 +22,7 @@ from torchsfm.config import Config, with_overrides
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.fundamental import sampson_error, symmetric_epipolar_distance
 from torchsfm.geometry.fundamental_refinement import refine_fundamental
+from torchsfm.io.datasets import ground_truth_pairs
 from torchsfm.io.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 from torchsfm.sfm.two_view_geometry import estimate_fundamental
@@ -30,14 +31,13 @@ DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def main() -> None:
-    from ncc_vs_strength import pairs  # the same pairs as the Figure 3.8 study
-
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     args = parser.parse_args()
     rows = {True: [], False: []}
-    for name, path1, path2, F_true in pairs(args.data):
-        grey = torch.stack([to_grey(read_image(path1)), to_grey(read_image(path2))])
+    for pair in ground_truth_pairs(args.data):
+        F_true = pair.F
+        grey = torch.stack([to_grey(read_image(pair.image1)), to_grey(read_image(pair.image2))])
         for subpixel in (True, False):
             config = with_overrides(Config(), [f"harris.subpixel={str(subpixel).lower()}", "fundamental.refine=false"])
             corners = detect_corners(grey, config.harris)

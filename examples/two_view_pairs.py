@@ -16,26 +16,13 @@ from pathlib import Path
 
 import torch
 
-from torchsfm.geometry.fundamental import fundamental_from_pose, symmetric_epipolar_distance
-from torchsfm.io.datasets import read_oxford_multiview, read_strecha
+from torchsfm.geometry.fundamental import symmetric_epipolar_distance
+from torchsfm.io.datasets import ground_truth_pairs
 from torchsfm.io.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def cases(data: Path):
-    """(name, image1, image2, K1, K2, R_true, t_true)."""
-    for name in ("strecha_fountain_P11", "strecha_herzjesu_P8"):
-        sequence = read_strecha(data / name)
-        for i in range(len(sequence.images) - 1):
-            yield (f"{name} {i}-{i + 1}", sequence.images[i], sequence.images[i + 1], sequence.K[i], sequence.K[i + 1],
-                   *sequence.relative_pose(i, i + 1))
-    merton = read_oxford_multiview(data / "oxford_merton1")
-    K, _, _ = merton.cameras()
-    for i, j in ((0, 1), (1, 2), (0, 2)):
-        yield (f"oxford_merton1 {i}-{j}", merton.images[i], merton.images[j], K[i], K[j], *merton.relative_pose(i, j))
 
 
 def main() -> None:
@@ -45,8 +32,9 @@ def main() -> None:
     pipeline = TwoViewReconstruction()
     print(f"{'pair':26s} {'putative':>8s} {'final':>6s} {'<1.5px':>7s} {'R err °':>8s} {'t err °':>8s} {'s':>6s}")
     warm = True
-    for name, path1, path2, K1, K2, R_true, t_true in cases(args.data):
-        image1, image2 = read_image(path1), read_image(path2)
+    for pair in ground_truth_pairs(args.data):
+        name, K1, K2, R_true, t_true = pair.name, pair.K1, pair.K2, pair.R, pair.t
+        image1, image2 = read_image(pair.image1), read_image(pair.image2)
         if warm:
             pipeline(image1, image2, K1, K2, generator=torch.Generator().manual_seed(0))
             warm = False
@@ -54,7 +42,7 @@ def main() -> None:
         model = pipeline(image1, image2, K1, K2, generator=torch.Generator().manual_seed(0))
         seconds = time.perf_counter() - start
         inliers = model.inlier_mask
-        F_true = fundamental_from_pose(K1, K2, R_true, t_true)
+        F_true = pair.F
         within = (symmetric_epipolar_distance(F_true, model.matches[inliers, :2], model.matches[inliers, 2:]) < 1.5).double().mean()
         print(f"{name:26s} {inliers.numel():8d} {int(inliers.sum()):6d} {within:7.3f} "
               f"{rotation_error_deg(model.cameras.R[1], R_true):8.3f} {translation_direction_error_deg(model.cameras.t[1], t_true):8.3f} {seconds:6.2f}")

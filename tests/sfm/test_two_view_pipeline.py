@@ -6,11 +6,10 @@ epipolar distance) of the ground-truth epipolar geometry, rotation error < 0.5°
 direction error < 2°.
 """
 
-import pytest
 import torch
 
-from torchsfm.geometry.fundamental import fundamental_from_pose, fundamental_from_projections, symmetric_epipolar_distance
-from torchsfm.io.datasets import read_oxford_multiview, read_strecha
+from torchsfm.geometry.fundamental import symmetric_epipolar_distance
+from torchsfm.io.datasets import ground_truth_pairs
 from torchsfm.io.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
@@ -28,22 +27,8 @@ def _check(model, F_true, R_true, t_true, pair):
     assert model.num_points == int(inliers.sum()) and model.reprojection_rms() < 1.0
 
 
-@pytest.mark.parametrize("name", ["strecha_fountain_P11", "strecha_herzjesu_P8"])
-def test_strecha_neighbouring_pairs(shared_data, name):
-    sequence = read_strecha(shared_data / name)
-    for i in range(len(sequence.images) - 1):
-        j = i + 1
-        model = PIPELINE(read_image(sequence.images[i]), read_image(sequence.images[j]), sequence.K[i], sequence.K[j],
+def test_every_ground_truth_pair(shared_data):
+    for pair in ground_truth_pairs(shared_data):
+        model = PIPELINE(read_image(pair.image1), read_image(pair.image2), pair.K1, pair.K2,
                          generator=torch.Generator().manual_seed(0))
-        R_true, t_true = sequence.relative_pose(i, j)
-        _check(model, fundamental_from_pose(sequence.K[i], sequence.K[j], R_true, t_true), R_true, t_true, f"{name} {i}-{j}")
-
-
-def test_merton_pairs(shared_data):
-    dataset = read_oxford_multiview(shared_data / "oxford_merton1")
-    K, _, _ = dataset.cameras()
-    for i, j in ((0, 1), (1, 2), (0, 2)):
-        model = PIPELINE(read_image(dataset.images[i]), read_image(dataset.images[j]), K[i], K[j],
-                         generator=torch.Generator().manual_seed(0))
-        R_true, t_true = dataset.relative_pose(i, j)
-        _check(model, fundamental_from_projections(dataset.P[i], dataset.P[j]), R_true, t_true, f"merton {i}-{j}")
+        _check(model, pair.F, pair.R, pair.t, pair.name)

@@ -10,6 +10,7 @@ from torch import Tensor
 
 from torchsfm.camera import decompose_projection
 from torchsfm.errors import InputError
+from torchsfm.geometry.fundamental import fundamental_from_pose
 
 
 def _read_matrix(path: Path) -> Tensor:
@@ -133,3 +134,38 @@ def read_strecha(folder: str | Path) -> StrechaSequence:
     if missing:
         raise InputError(f"missing images for camera files: {', '.join(missing)}")
     return StrechaSequence(images=images, K=tables[:, :3], R=tables[:, 3:6], t=tables[:, 6])
+
+
+@dataclass
+class GroundTruthPair:
+    """Two images with ground-truth intrinsics and relative pose (camera 2 from camera 1, unit t)."""
+
+    name: str
+    image1: Path
+    image2: Path
+    K1: Tensor
+    K2: Tensor
+    R: Tensor
+    t: Tensor
+
+    @property
+    def F(self) -> Tensor:
+        """The ground-truth fundamental matrix (unit norm)."""
+        return fundamental_from_pose(self.K1, self.K2, self.R, self.t)
+
+
+def ground_truth_pairs(data: str | Path) -> list[GroundTruthPair]:
+    """The evaluation pairs of ``../shared/data``: every neighbouring pair of Strecha fountain-P11 and
+    Herz-Jesu-P8, and the pairs (0, 1), (1, 2), (0, 2) of Oxford Merton College I."""
+    data = Path(data)
+    pairs = []
+    for name in ("strecha_fountain_P11", "strecha_herzjesu_P8"):
+        sequence = read_strecha(data / name)
+        for i in range(len(sequence.images) - 1):
+            pairs.append(GroundTruthPair(f"{name} {i}-{i + 1}", sequence.images[i], sequence.images[i + 1],
+                                         sequence.K[i], sequence.K[i + 1], *sequence.relative_pose(i, i + 1)))
+    merton = read_oxford_multiview(data / "oxford_merton1")
+    K, _, _ = merton.cameras()
+    for i, j in ((0, 1), (1, 2), (0, 2)):
+        pairs.append(GroundTruthPair(f"oxford_merton1 {i}-{j}", merton.images[i], merton.images[j], K[i], K[j], *merton.relative_pose(i, j)))
+    return pairs

@@ -61,8 +61,8 @@ class _Model:
         self.registered = torch.zeros(V, dtype=torch.bool)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
-        self.pixels = torch.stack([corners[v][c] for v, c in zip(tracks.view.tolist(), tracks.corner.tolist())]) \
-            if tracks.view.numel() else torch.zeros(0, 2, dtype=torch.float64)
+        offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
+        self.pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]  # (T, 2) one gather
 
     def centre(self, view: int) -> Tensor:
         return -self.R[view].T @ self.t[view]
@@ -334,9 +334,9 @@ def _result(model: _Model, images: list[Tensor], names: list[str], unregistered:
     keep &= point_of[tracks.track] >= 0
     first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
-    colours = torch.stack([images[v][:, int(y), int(x)].expand(3) if images[v].shape[0] == 1 else images[v][:, int(y), int(x)]
-                           for v, (x, y) in zip(tracks.view[first_observation].tolist(), model.pixels[first_observation].round().long().tolist())]) \
-        if point_tracks.numel() else torch.zeros(0, 3)
+    stacked = torch.stack([image.expand(3, -1, -1) for image in images])  # (V, 3, H, W)
+    pixel = model.pixels[first_observation].round().long()
+    colours = stacked[tracks.view[first_observation], :, pixel[:, 1], pixel[:, 0]]  # (P, 3), one gather
     if colours.dtype != torch.uint8:
         colours = (colours.float() * 255).round().clamp(0, 255).to(torch.uint8)
     H, W = images[0].shape[-2:]

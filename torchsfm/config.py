@@ -326,6 +326,67 @@ class ReconstructionConfig:
 
 
 @dataclass(frozen=True)
+class MovingObjectsConfig:
+    """Rejection of independently moving objects (thesis chapter 5, Alg. 5.4.1).
+
+    Frames 0 and 2 are registered to frame 1 (the reference) by the dominant plane:
+    ``plane_model`` ``quadratic`` (eq. 5.2.1) or ``homography`` (exact for finite motions), found
+    by RANSAC (``plane_ransac``; threshold in pixels) and refitted on its inliers; the plane must
+    explain at least ``min_plane_share`` of the vectors. Rigidity residuals (eq. 5.3.2) are
+    normalized to pixels by first-order noise propagation, so ``rigidity_threshold`` (t1) is a
+    pixel noise level and holds across image sizes. ``neighbourhood`` (d1) is a fraction of the
+    diagonal of the reference points' bounding box (the thesis' 60 px on its 640×480 images is
+    0.075). Seeds and supports need a residual parallax of at least ``min_support_parallax`` px
+    (smaller ones carry no information). ``seed_candidates`` (N), ``supports`` (M),
+    ``keep_fraction`` (p) and ``min_votes`` (K) are the thesis' parameters; ``selection``
+    ``rank`` keeps the best p of every support's residuals (thesis), ``threshold`` keeps those
+    within t1 (ours: p caps the background at a share p of the vectors). A static scene's
+    parallax grows from zero at the plane, a moving object's is offset as a whole: when the plane
+    explains at least ``planar_background_share`` of the vectors and the 10th percentile of the
+    parallax norms of IMOR's background is above ``planar_background_ratio`` times their median,
+    that rigid group is taken for an object on a planar background (Irani & Anandan's 2D case)
+    and every vector with parallax is rejected (ours; a heuristic prior: with three frames or
+    more, a rigid object over a planar background is geometrically as valid a static scene). With ``ransac`` the
+    IMOR background goes on to RANSAC on the fundamental matrices of frame pairs (1, 0), (1, 2)
+    and (0, 2) (IMOR + RANSAC). Over longer tracks, every frame triplet votes and a vector
+    rejected by at least ``min_rejection_share`` of the triplets that tested it is rejected
+    (ours). ``enabled`` turns the rejection on in the two-view and multi-view pipelines.
+    """
+
+    plane_model: str = "homography"
+    plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0))
+    min_plane_share: float = 0.1
+    seed_candidates: int = 20
+    rigidity_threshold: float = 1.0
+    neighbourhood: float = 0.075
+    min_support_parallax: float = 2.0
+    supports: int = 10
+    keep_fraction: float = 0.7
+    min_votes: int = 6
+    selection: str = "threshold"
+    planar_background_ratio: float = 0.55
+    planar_background_share: float = 0.4
+    ransac: bool = True
+    min_rejection_share: float = 0.25
+    enabled: bool = False
+
+    def __post_init__(self) -> None:
+        _require(self.plane_model in ("quadratic", "homography"), "plane_model", self.plane_model, "one of quadratic, homography")
+        _require(0 < self.min_plane_share <= 1, "min_plane_share", self.min_plane_share, "must lie in (0, 1]")
+        _require(self.seed_candidates >= 1, "seed_candidates", self.seed_candidates, "must be >= 1")
+        _require(self.rigidity_threshold > 0, "rigidity_threshold", self.rigidity_threshold, "must be > 0")
+        _require(0 <= self.neighbourhood < 1, "neighbourhood", self.neighbourhood, "must lie in [0, 1)")
+        _require(self.min_support_parallax >= 0, "min_support_parallax", self.min_support_parallax, "must be >= 0")
+        _require(self.supports >= 1, "supports", self.supports, "must be >= 1")
+        _require(0 < self.keep_fraction <= 1, "keep_fraction", self.keep_fraction, "must lie in (0, 1]")
+        _require(1 <= self.min_votes <= self.supports, "min_votes", self.min_votes, "must lie in [1, supports]")
+        _require(self.selection in ("threshold", "rank"), "selection", self.selection, "one of threshold, rank")
+        _require(self.planar_background_ratio > 0, "planar_background_ratio", self.planar_background_ratio, "must be > 0")
+        _require(0 < self.planar_background_share <= 1, "planar_background_share", self.planar_background_share, "must lie in (0, 1]")
+        _require(0 < self.min_rejection_share <= 1, "min_rejection_share", self.min_rejection_share, "must lie in (0, 1]")
+
+
+@dataclass(frozen=True)
 class Config:
     """Every tunable of torchsfm, grouped by stage."""
 
@@ -340,6 +401,7 @@ class Config:
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
     resection: ResectionConfig = field(default_factory=ResectionConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
 
 
 def _build(cls: type, values: Any, prefix: str) -> Any:

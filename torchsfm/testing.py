@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -234,3 +235,129 @@ def square_corners(squares: list[tuple[float, float, float, float, float]]) -> T
     """The (4 S, 2) float64 corners of :func:`random_squares` squares."""
     return torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))],
                         dtype=torch.float64)
+
+
+@dataclass
+class MovingObjectScene:
+    """A static scene with rigid objects moving independently, seen by a moving camera.
+
+    Fields (float64 unless noted):
+        K: (3, 3) intrinsics. R, t: (F, 3, 3), (F, 3) cameras (camera from world).
+        tracks: (F, N, 2) observed pixels (noisy; random pixels at outlier rows).
+        labels: (N,) int64: 0 static background, k >= 1 the k-th moving object, -1 outlier.
+        image_size: (width, height).
+    """
+
+    K: Tensor
+    R: Tensor
+    t: Tensor
+    tracks: Tensor
+    labels: Tensor
+    image_size: tuple[int, int]
+
+
+def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
+                           object_points: int = 60, outlier_fraction: float = 0.1, noise: float = 0.3,
+                           plane_share: float = 0.5) -> MovingObjectScene:
+    """A seeded scene for moving-object rejection (640×480, f = 800 px).
+
+    The background is a wall (a share ``plane_share`` of its points, the dominant plane) and
+    points scattered 6–20 m deep in front of it; each object is a 2 m box of points 6–10 m away
+    translating 0.3–0.6 m and turning up to 3° per frame in its own direction, independently of
+    the camera (which moves ~0.5 m and turns ~1.5° per frame, at constant velocity). An object
+    takes a new random step every frame: at constant velocity, a point moving straight is, to
+    first order, indistinguishable from a static one over three frames (its virtual camera moves
+    at a constant velocity too), for the rigidity constraint and for any three-view test. Outliers are random pixels in
+    every frame. Only points that stay in the image in every frame are kept.
+    """
+    g = torch.Generator().manual_seed(seed)
+    W, H = 640, 480
+    K = torch.tensor([[800.0, 0, W / 2], [0, 800.0, H / 2], [0, 0, 1]], dtype=torch.float64)
+    R, t = [torch.eye(3, dtype=torch.float64)], [torch.zeros(3, dtype=torch.float64)]
+    step = torch.tensor([0.5, 0.05, 0.15], dtype=torch.float64) + _uniform((3,), -0.1, 0.1, g)
+    spin = _uniform((3,), -1.5, 1.5, g) * math.pi / 180
+    for _ in range(num_frames - 1):
+        R.append(axis_angle_to_rotation(spin) @ R[-1])
+        t.append(axis_angle_to_rotation(spin) @ t[-1] - step)
+    R, t = torch.stack(R), torch.stack(t)
+
+    def inside(points: Tensor) -> tuple[Tensor, Tensor]:  # (F, n, 3) per-frame world points
+        camera = points @ R.transpose(-1, -2) + t[:, None]
+        pixels = camera @ K.T
+        pixels = pixels[..., :2] / pixels[..., 2:]
+        ok = (camera[..., 2] > 0.5) & (pixels[..., 0] > 0) & (pixels[..., 0] < W) & (pixels[..., 1] > 0) & (pixels[..., 1] < H)
+        return pixels, ok.all(0)
+
+    wall_count = int(3 * background_points * plane_share)
+    wall = torch.stack([_uniform((wall_count,), -12, 14, g), _uniform((wall_count,), -9, 9, g), torch.full((wall_count,), 20.0, dtype=torch.float64)], -1)
+    free_count = 3 * background_points - wall_count
+    free = torch.stack([_uniform((free_count,), -8, 10, g), _uniform((free_count,), -6, 6, g), _uniform((free_count,), 6, 20, g)], -1)
+    static = torch.cat([wall, free])
+    pixels, ok = inside(static.expand(num_frames, -1, -1))
+    keep = torch.nonzero(ok).flatten()
+    keep = keep[torch.randperm(keep.numel(), generator=g)[:background_points]]
+    tracks, labels = [pixels[:, keep]], [torch.zeros(keep.numel(), dtype=torch.long)]
+    for k in range(1, num_objects + 1):
+        centre = torch.stack([_uniform((), -3, 3, g), _uniform((), -2, 2, g), _uniform((), 6, 10, g)])
+        body = centre + _uniform((3 * object_points, 3), -1, 1, g)
+        frames, position = [body], centre
+        for _ in range(num_frames - 1):  # a new random step and turn every frame
+            direction = _uniform((3,), -1, 1, g)
+            move = direction / direction.norm() * _uniform((), 0.3, 0.6, g)
+            turn = axis_angle_to_rotation(_uniform((3,), -3, 3, g) * math.pi / 180)
+            frames.append((frames[-1] - position) @ turn.T + position + move)
+            position = position + move
+        pixels, ok = inside(torch.stack(frames))
+        chosen = torch.nonzero(ok).flatten()[:object_points]
+        tracks.append(pixels[:, chosen])
+        labels.append(torch.full((chosen.numel(),), k, dtype=torch.long))
+    tracks = torch.cat(tracks, 1)
+    tracks = tracks + noise * torch.randn(tracks.shape, generator=g, dtype=torch.float64)
+    labels = torch.cat(labels)
+    num_outliers = round(outlier_fraction * labels.numel() / (1 - outlier_fraction))
+    outliers = torch.stack([_uniform((num_frames, num_outliers), 0, W, g), _uniform((num_frames, num_outliers), 0, H, g)], -1)
+    tracks = torch.cat([tracks, outliers], 1)
+    labels = torch.cat([labels, torch.full((num_outliers,), -1, dtype=torch.long)])
+    order = torch.randperm(labels.numel(), generator=g)
+    return MovingObjectScene(K=K, R=R, t=t, tracks=tracks[:, order], labels=labels[order], image_size=(W, H))
+
+
+def rejection_figures(background: Tensor, labels: Tensor) -> dict[str, float]:
+    """Table 5.1's counts for a background decision (N,) bool against labels (N,) (0 = static).
+
+    Returns wrong rejections (static vectors rejected), undetected (moving or outlier vectors
+    kept), inliers (vectors kept), total, and the rates: wrongly rejected share of the static
+    vectors and undetected share of the others.
+    """
+    static = labels == 0
+    wrong = int((static & ~background).sum())
+    undetected = int((~static & background).sum())
+    return {"wrong_rejections": wrong, "undetected": undetected, "inliers": int(background.sum()), "total": labels.numel(),
+            "wrong_rate": wrong / max(int(static.sum()), 1), "undetected_rate": undetected / max(int((~static).sum()), 1)}
+
+
+# Where the inserted object sits in the three frames of :func:`insert_moving_patch` (top-left
+# corners, pixels of a 768×512 image): a step right and up, then right and down — an
+# independent, non-constant motion.
+PATCH_POSITIONS = ((150, 260), (215, 235), (250, 300))
+
+
+def insert_moving_patch(images: list[Tensor], patch: Tensor, positions: tuple[tuple[int, int], ...] = PATCH_POSITIONS
+                        ) -> tuple[list[Tensor], Tensor]:
+    """Paste a textured patch (C, h, w) into each image (C, H, W) at its top-left position (x, y),
+    as the thesis did (§5.5). Returns the new images and the (F, 4) boxes (x0, y0, x1, y1)."""
+    h, w = patch.shape[-2:]
+    pasted, boxes = [], []
+    for image, (x, y) in zip(images, positions):
+        image = image.clone()
+        image[:, y:y + h, x:x + w] = patch
+        pasted.append(image)
+        boxes.append([x, y, x + w, y + h])
+    return pasted, torch.tensor(boxes, dtype=torch.float64)
+
+
+def inside_boxes(tracks: Tensor, boxes: Tensor, margin: float = 4.0) -> Tensor:
+    """(F, N, 2) points against (F, 4) boxes grown by ``margin`` px: (N,) True where any frame's
+    point lies in its frame's box."""
+    low, high = boxes[:, None, :2] - margin, boxes[:, None, 2:] + margin
+    return ((tracks >= low) & (tracks <= high)).all(-1).any(0)

@@ -6,7 +6,7 @@ import torch
 from torch.testing import assert_close
 
 from torchsfm.config import RansacConfig
-from torchsfm.geometry.fundamental import normalize_scale
+from torchsfm.geometry.fundamental import normalize_scale, sampson_error
 from torchsfm.robust.models import FundamentalModel
 from torchsfm.robust.ransac import SCORINGS, ransac, required_trials
 from torchsfm.testing import synthetic_two_view
@@ -27,13 +27,18 @@ def test_required_trials_follows_eq_3_3_7():
 @pytest.mark.parametrize("sampler", ["bucketed", "uniform"])
 @pytest.mark.parametrize("scoring", sorted(SCORINGS))
 def test_planted_outliers_are_found_exactly(sampler, scoring):
-    """Noise-free inliers, outliers planted far from the epipolar geometry: the mask is exact."""
+    """Noise-free inliers, outliers at least 5 px from the epipolar geometry: the mask is exact.
+    (An outlier within a few pixels can legitimately win: an F that also fits it has one inlier
+    more under the 1 px threshold.)"""
     scenes = [synthetic_two_view(300, outlier_ratio=0.5, seed=seed) for seed in range(3)]
-    data = _data(*scenes)
+    far = [s.is_inlier | (sampson_error(s.F, s.x1, s.x2) > 25) for s in scenes]
+    keep = min(int(f.sum()) for f in far)
+    data = torch.stack([torch.cat([s.x1, s.x2], -1)[f][:keep] for s, f in zip(scenes, far)])
+    expected = [s.is_inlier[f][:keep] for s, f in zip(scenes, far)]
     config = dataclasses.replace(RansacConfig(), sampler=sampler, scoring=scoring)
     result = ransac(FundamentalModel(data), data, config, generator=torch.Generator().manual_seed(0))
     for b, scene in enumerate(scenes):
-        assert torch.equal(result.inlier_mask[b], scene.is_inlier)
+        assert torch.equal(result.inlier_mask[b], expected[b])
         F, truth = normalize_scale(result.model[b]), scene.F
         assert_close(F * torch.sign((F * truth).sum()), truth, rtol=0, atol=1e-8)
     assert result.success.all()

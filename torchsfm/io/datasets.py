@@ -169,3 +169,55 @@ def ground_truth_pairs(data: str | Path) -> list[GroundTruthPair]:
     for i, j in ((0, 1), (1, 2), (0, 2)):
         pairs.append(GroundTruthPair(f"oxford_merton1 {i}-{j}", merton.images[i], merton.images[j], K[i], K[j], *merton.relative_pose(i, j)))
     return pairs
+
+
+# Which Hopkins155 motion group is the static background. The labels are motion groups, not
+# background flags; checked by overlaying the tracks on each preview.jpg: the trees of cars1 and
+# truck1 (their tracks' y axis points up: 480 - y overlays the preview), the parking lot of
+# kanatani1, the room around the two checkerboard objects of 1R2RC.
+HOPKINS_BACKGROUND_GROUP = {"cars1": 2, "truck1": 2, "kanatani1": 1, "1R2RC": 3}
+
+
+@dataclass
+class MotionTracks:
+    """Points tracked over F frames with per-point motion labels.
+
+    Fields:
+        name: the sequence.
+        tracks: (F, N, 2) float64 pixel positions as stored.
+        labels: (N,) int64: 0 the static background, 1, 2, ... the moving objects.
+        image_size: (width, height).
+    """
+
+    name: str
+    tracks: Tensor
+    labels: Tensor
+    image_size: tuple[int, int]
+
+
+def read_hopkins155(folder: str | Path) -> MotionTracks:
+    """A Hopkins155 sequence folder ``<name>/<name>_truth.mat`` (needs SciPy to read MATLAB files).
+
+    Uses the pixel tracks ``y`` (not ``x``, which is normalized by a matrix that is not the
+    camera's K). Groups are relabelled so that 0 is the background (see
+    :data:`HOPKINS_BACKGROUND_GROUP`); for another sequence the largest group is taken.
+    """
+    folder = Path(folder)
+    path = folder / f"{folder.name}_truth.mat"
+    if not path.is_file():
+        raise InputError(f"no Hopkins155 ground truth {path}")
+    try:
+        from scipy.io import loadmat
+    except ImportError as error:
+        raise InputError("reading Hopkins155 .mat files needs SciPy: pip install scipy") from error
+    mat = loadmat(path)
+    y = torch.from_numpy(mat["y"].astype("float64"))  # (3, N, F) homogeneous pixels
+    tracks = (y[:2] / y[2:]).permute(2, 1, 0).contiguous()
+    groups = torch.from_numpy(mat["s"].astype("int64")).flatten()
+    background = HOPKINS_BACKGROUND_GROUP.get(folder.name, int(torch.bincount(groups).argmax()))
+    objects = torch.unique(groups[groups != background])
+    labels = torch.zeros_like(groups)
+    for k, group in enumerate(objects.tolist(), start=1):
+        labels[groups == group] = k
+    return MotionTracks(name=folder.name, tracks=tracks, labels=labels,
+                        image_size=(int(mat["width"].item()), int(mat["height"].item())))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from torchsfm.config import MatchingConfig
@@ -49,3 +50,21 @@ class PutativeMatcher(nn.Module):
 
     def extra_repr(self) -> str:
         return repr(self.config)
+
+
+def chain_matches(first: PutativeMatches, second: PutativeMatches, num_middle: int) -> tuple[Tensor, Tensor]:
+    """Triplets through the middle image of matches (a → b) and (b → c).
+
+    Args:
+        first: matches of image a to image b; second: matches of image b to image c.
+        num_middle: number of corners of image b.
+
+    Returns:
+        (T,) positions in ``first`` of the matches whose b-corner is matched into c, and (T,)
+        the c-corner of each.
+    """
+    onward = torch.full((num_middle,), -1, dtype=torch.long)
+    onward[second.index1] = second.index2
+    third = onward[first.index2]
+    seen = torch.nonzero(third >= 0).flatten()
+    return seen, third[seen]

@@ -8,6 +8,7 @@ from torch import Tensor
 from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses
 from torchsfm.geometry.homography import homography_dlt, transfer_error
+from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
 
@@ -106,6 +107,94 @@ class HomographyModel:
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
         return transfer_error(models, data[:, None, :, :2], data[:, None, :, 2:])
+
+    def sampling_coordinates(self, data: Tensor) -> Tensor:
+        return data[..., :2]
+
+
+class PlanarFlowModel:
+    """The quadratic planar flow (eq. 5.2.1) of one dominant plane between a reference frame and
+    J other frames; data rows ``(x, y, x'_1, y'_1, ..., x'_J, y'_J)``: a point of the reference
+    frame and its positions in the other frames (pixels, D = 2 + 2J). A model is (J, 8), one
+    flow per frame, all fitted to the same points so that every frame is registered by the same
+    plane (with two independent fits an inserted planar object can win one frame pair).
+
+    Fitted in the Hartley-normalized frame of all valid reference points (one similarity per
+    problem, so minimal and weighted fits share it). Minimal solver: the affine part (p7 = p8
+    = 0) from 3 correspondences (ours: 3-point samples need far fewer trials than the 4 points
+    the 8 parameters take, and the LO refits and the final fit restore the quadratic terms);
+    non-minimal: weighted least squares of all 8. Residual: the largest over the frames of the
+    squared distance (pixels²) between x'_j and x + u_j(x).
+
+    Args:
+        data: (B, N, 2 + 2J) the correspondences; valid: optional (B, N) mask of real rows.
+    """
+
+    sample_size = 3
+
+    def __init__(self, data: Tensor, valid: Tensor | None = None) -> None:
+        weights = None if valid is None else valid.to(data.dtype)
+        self.T = hartley_normalize(data[..., :2], weights)[1]  # (B, 3, 3)
+
+    def normalize(self, data: Tensor) -> tuple[Tensor, Tensor]:
+        """Reference points (B, ..., 2) and displacements (B, ..., J, 2) of (B, ..., D) rows in
+        the normalized frame."""
+        T = self.T.reshape(self.T.shape[0], *[1] * (data.dim() - 2), 3, 3)
+        scale, shift = T[..., 0, 0, None], T[..., :2, 2]  # (B, ..., 1), (B, ..., 2)
+        x = data[..., :2]
+        others = data[..., 2:].unflatten(-1, (-1, 2))
+        return x * scale + shift, (others - x[..., None, :]) * scale[..., None]
+
+    def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        x, displacement = self.normalize(samples)  # (B, K, 3, 2), (B, K, 3, J, 2)
+        A = planar_flow_design(x)[..., :6].flatten(-3, -2)  # (B, K, 6, 6): the affine part
+        solvable = torch.linalg.det(A).abs() > 1e-9
+        A = torch.where(solvable[..., None, None], A, torch.eye(6, dtype=A.dtype, device=A.device))
+        affine = torch.linalg.solve(A[..., None, :, :], displacement.transpose(-2, -3).flatten(-2)[..., None])[..., 0]  # (B, K, J, 6)
+        return torch.cat([affine, torch.zeros_like(affine[..., :2])], dim=-1), solvable
+
+    def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
+        x, displacement = self.normalize(data)  # (B, N, 2), (B, N, J, 2)
+        J = displacement.shape[-2]
+        return fit_planar_flow(x[:, None].expand(-1, J, -1, -1), displacement.transpose(1, 2), weights[:, None].expand(-1, J, -1))
+
+    def residuals(self, models: Tensor, data: Tensor) -> Tensor:
+        x, displacement = self.normalize(data)  # (B, N, 2), (B, N, J, 2)
+        B, H, J = models.shape[:3]
+        predicted = planar_flow(models.flatten(1, 2), x).unflatten(1, (H, J))  # (B, H, J, N, 2)
+        scale = self.T[:, 0, 0].reshape(-1, 1, 1)
+        squared = (displacement.transpose(1, 2)[:, None] - predicted).square().sum(-1)  # (B, H, J, N)
+        return squared.amax(2) / scale.square()
+
+    def sampling_coordinates(self, data: Tensor) -> Tensor:
+        return data[..., :2]
+
+
+class JointModel:
+    """One model per frame, all fitted to the same samples: data rows ``(x, y, x'_1, y'_1, ...,
+    x'_J, y'_J)`` (D = 2 + 2J); the per-frame model is fitted to ``(x, y, x'_j, y'_j)``. Models
+    are (J, *M); a row's residual is its largest over the frames, so an inlier fits every frame.
+
+    Args:
+        base: a single-solution plug-in for (x, y, x', y') rows (e.g. :class:`HomographyModel`).
+    """
+
+    def __init__(self, base) -> None:
+        self.base, self.sample_size = base, base.sample_size
+
+    @staticmethod
+    def _frames(data: Tensor) -> list[Tensor]:
+        return [torch.cat([data[..., :2], data[..., j:j + 2]], dim=-1) for j in range(2, data.shape[-1], 2)]
+
+    def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        fits = [self.base.fit_minimal(frame) for frame in self._frames(samples)]
+        return torch.stack([m for m, _ in fits], dim=2), torch.stack([ok for _, ok in fits]).all(0)
+
+    def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
+        return torch.stack([self.base.fit_weighted(frame, weights) for frame in self._frames(data)], dim=1)
+
+    def residuals(self, models: Tensor, data: Tensor) -> Tensor:
+        return torch.stack([self.base.residuals(models[:, :, j], frame) for j, frame in enumerate(self._frames(data))]).amax(0)
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., :2]

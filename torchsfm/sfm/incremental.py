@@ -25,6 +25,7 @@ from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.io.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
+from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
@@ -245,6 +246,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
     model = _reconstruct_views(loaded, K[kept], names=[names[v] for v in kept], config=config, generator=generator, progress=progress)
     model.view_indices = [kept[v] for v in model.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
+    model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
     return model
 
 
@@ -273,6 +275,10 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], con
     pairs = timed("matching", lambda: _match_pairs(greys, corners, config, generator, report))
     tracks = build_tracks([c.shape[0] for c in corners], {key: (m.index1, m.index2) for key, m in pairs.items()})
     report(f"{tracks.num_tracks} tracks from {len(pairs)} verified pairs")
+    rejections = {}
+    if config.moving_objects.enabled:
+        tracks, rejections = timed("moving objects", lambda: _reject_moving_tracks(tracks, corners, config, generator))
+        report(f"{tracks.num_tracks} tracks kept as static by IMOR + RANSAC")
     (first, second), R, t, _ = timed("initial pair", lambda: _initial_pair(pairs, corners, K, config, generator))
     model = _Model(tracks, corners, K, config)
     model.R[second], model.t[second] = R.double(), t.double()
@@ -316,7 +322,38 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], con
     inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
     model.has_point &= inlier_count >= config.reconstruction.min_track_views
     timed("bundle adjustment", lambda: _bundle(model, config, first))
-    return _result(model, images, names, unregistered, timings)
+    result = _result(model, images, names, unregistered, timings)
+    result.moving_objects = rejections
+    return result
+
+
+def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator
+                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection]]:
+    """Drop the tracks that IMOR + RANSAC rejects in at least ``min_rejection_share`` of the
+    consecutive view triplets (i, i+1, i+2) that see them; triplets seeing too few tracks are
+    skipped. Returns the kept tracks (renumbered) and each tested triplet's result."""
+    offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
+    pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]
+    observation = torch.full((len(corners), tracks.num_tracks), -1, dtype=torch.long)
+    observation[tracks.view, tracks.track] = torch.arange(tracks.view.numel())
+    rejected = torch.zeros(tracks.num_tracks)
+    tested = torch.zeros(tracks.num_tracks)
+    results = {}
+    for first in range(len(corners) - 2):
+        rows = observation[first:first + 3]  # (3, num_tracks)
+        seen = (rows >= 0).all(0)
+        if int(seen.sum()) < MIN_VECTORS:
+            continue
+        result = reject_moving_objects(*pixels[rows[:, seen]], config=config, generator=generator)
+        results[(first, first + 1, first + 2)] = result
+        tested[seen] += 1
+        rejected[seen] += (~result.background_mask).float()
+    moving = rejected >= config.moving_objects.min_rejection_share * tested.clamp_min(1)
+    moving &= tested > 0
+    keep = ~moving[tracks.track]
+    _, track = torch.unique(tracks.track[keep], return_inverse=True)
+    kept = Tracks(view=tracks.view[keep], corner=tracks.corner[keep], track=track, num_tracks=int(track.max()) + 1 if track.numel() else 0)
+    return kept, results
 
 
 def _result(model: _Model, images: list[Tensor], names: list[str], unregistered: dict[int, str],

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.camera import Camera
+from torchsfm.moving.imor import MovingObjectRejection
 
 
 @dataclass
@@ -29,6 +30,10 @@ class Reconstruction:
         view_indices: the input index of every view of the model (registered views).
         unregistered: input views left out of the model, with the reason.
         timings: seconds per pipeline stage.
+        moving_objects: with moving-object rejection on, IMOR + RANSAC's result for every frame
+            triplet (input view indices, the middle one the reference); its vectors are the
+            two-view model's matches seen in all three frames, or the multi-view model's tracks
+            seen in all three.
     """
 
     cameras: Camera
@@ -44,6 +49,7 @@ class Reconstruction:
     view_indices: list[int] = field(default_factory=list)
     unregistered: dict[int, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
 
     @property
     def num_views(self) -> int:

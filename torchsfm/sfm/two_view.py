@@ -17,7 +17,8 @@ from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
 from torchsfm.features.harris import HarrisCorners
 from torchsfm.io.images import to_grey
-from torchsfm.matching.matcher import PutativeMatcher
+from torchsfm.matching.matcher import PutativeMatcher, chain_matches
+from torchsfm.moving.imor import reject_moving_objects
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view_geometry import RelativePoseEstimator
 
@@ -48,6 +49,11 @@ class TwoViewReconstruction(nn.Module):
 
     ``forward(image1, image2, K1, K2=None)`` takes (3, H, W) colour or (1, H, W) grey images of
     the same size (uint8 or float in [0, 1]) and (3, 3) intrinsics (K2 defaults to K1).
+
+    With ``config.moving_objects.enabled`` it also needs ``third_image``, the frame after
+    image2: image2's corners are matched into both other images, and only matches seen in all
+    three frames that IMOR + RANSAC keeps as static background (image2 the reference) go on to
+    the relative pose. Matches not seen in the third frame cannot be tested and are dropped.
     """
 
     def __init__(self, config: Config | None = None) -> None:
@@ -58,10 +64,15 @@ class TwoViewReconstruction(nn.Module):
         self.pose = RelativePoseEstimator(self.config)
 
     def forward(self, image1: Tensor, image2: Tensor, K1: Tensor, K2: Tensor | None = None, *,
-                names: tuple[str, str] = ("image1", "image2"), generator: torch.Generator | None = None,
-                progress: Progress | None = None) -> Reconstruction:
+                third_image: Tensor | None = None, names: tuple[str, str] = ("image1", "image2"),
+                generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
         K2 = K1 if K2 is None else K2
+        moving = self.config.moving_objects.enabled
+        if moving and third_image is None:
+            raise InputError("moving-object rejection (moving_objects.enabled) needs a third image: the frame after image2")
         _check_images(image1, image2)
+        if moving:
+            _check_images(image2, third_image)
         check_intrinsics(K1=K1, K2=K2)
         K1, K2 = K1.double(), K2.double()
         timings: dict[str, float] = {}
@@ -74,10 +85,10 @@ class TwoViewReconstruction(nn.Module):
             timings[name] = time.perf_counter() - start
             return result
 
-        grey = torch.stack([to_grey(image1), to_grey(image2)])
+        grey = torch.stack([to_grey(image) for image in (image1, image2, third_image) if image is not None])
         corners = stage("corners", lambda: self.corners(grey))
-        points = [corners.of_image(0), corners.of_image(1)]
-        for view, name in enumerate(names):
+        points = [corners.of_image(v) for v in range(grey.shape[0])]
+        for view, name in enumerate([*names, "third_image"][: grey.shape[0]]):
             if points[view].shape[0] < 8:
                 raise NotEnoughDataError(f"{name} has {points[view].shape[0]} corners, at least 8 are needed (a textureless image?)")
         matches = stage("matching", lambda: self.matcher(grey[0], grey[1], points[0], points[1]))
@@ -89,8 +100,13 @@ class TwoViewReconstruction(nn.Module):
             raise DegenerateConfigurationError(
                 f"{names[0]} and {names[1]} show no baseline: matched corners moved by a median of {parallax:.2f} px "
                 f"(< two_view.min_median_parallax = {self.config.two_view.min_median_parallax})")
-        pose = stage("geometry", lambda: self.pose(x1, x2, K1, K2, generator=generator))
-        inliers = pose.inlier_mask
+        static = torch.ones(x1.shape[0], dtype=torch.bool)
+        rejections = {}
+        if moving:
+            static, rejections[(0, 1, 2)] = stage("moving objects", lambda: self._static_matches(grey, points, matches, generator))
+        pose = stage("geometry", lambda: self.pose(x1[static], x2[static], K1, K2, generator=generator))
+        inliers = torch.zeros_like(static)
+        inliers[static] = pose.inlier_mask
         P = int(inliers.sum())
         colours = (_colours(image1, x1[inliers]) + _colours(image2, x2[inliers])) / 2
         if image1.dtype != torch.uint8:
@@ -111,7 +127,18 @@ class TwoViewReconstruction(nn.Module):
             matches=torch.cat([x1, x2], dim=-1),
             inlier_mask=inliers,
             timings=timings,
+            moving_objects=rejections,
         )
+
+    def _static_matches(self, grey: Tensor, points: list[Tensor], matches, generator: torch.Generator | None):
+        """(M,) mask of the image1–image2 matches that IMOR + RANSAC keeps as static, and its result."""
+        onward = self.matcher(grey[1], grey[2], points[1], points[2])
+        seen, third = chain_matches(matches, onward, points[1].shape[0])
+        rejection = reject_moving_objects(points[0][matches.index1[seen]].double(), points[1][matches.index2[seen]].double(),
+                                          points[2][third].double(), config=self.config, generator=generator)
+        static = torch.zeros(matches.index1.numel(), dtype=torch.bool)
+        static[seen[rejection.background_mask]] = True
+        return static, rejection
 
     def extra_repr(self) -> str:
         return f"two_view={self.config.two_view}"

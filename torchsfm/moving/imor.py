@@ -1,0 +1,285 @@
+"""IMOR (thesis Alg. 5.4.1) and IMOR + RANSAC: reject the correspondences of independently moving
+objects and outliers from N points tracked over three frames.
+
+1. Frames 0 and 2 are registered to frame 1 by their dominant planes (plane + parallax).
+2. Seed: N candidates at equal steps of the sorted parallax norms (Fig. 5.4's axis) among the
+   vectors with informative parallax; each counts the vectors outside its neighbourhood d1 that
+   satisfy the rigidity constraint with it within t1; the best count is the background seed.
+3. Of the 4M informative vectors outside the seed's neighbourhood that fit it best, the M with
+   the largest consensus (counted as for the seed) become supports (ours: the thesis takes the
+   M that fit best, and a moving vector that happens to fit the seed then votes its own object
+   in and the background out).
+   Consensus counts only informative tests: those where the support's parallax across the line
+   to the other point is at least ``min_support_parallax`` (ours: a support on or near the plane
+   passes every vector, so a raw count prefers the least informative supports).
+4. Each support keeps the vectors it explains (within t1, or its best p, ``selection``).
+5. A vector kept by at least K supports is background.
+6. (IMOR + RANSAC) robust F on pairs (1, 0), (1, 2), (0, 2) of the background only; a vector
+   must be an inlier of all three.
+
+Where the decomposition cannot work — no dominant plane, too little parallax (planar or purely
+rotating scenes, all points moving together) — IMOR is skipped, RANSAC alone decides and the
+result says why in ``fallback``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import Config, MovingObjectsConfig
+from torchsfm.errors import NotEnoughDataError, ShapeError
+from torchsfm.moving.parallax import PlaneParallax, plane_parallax
+from torchsfm.moving.rigidity import rigidity_residuals
+from torchsfm.sfm.two_view_geometry import estimate_fundamental
+from torchsfm.validation import check_finite, check_floating, check_shapes
+
+MIN_VECTORS = 12  # the quadratic flow needs 4 points; RANSAC on it and on F needs clearly more
+
+
+@dataclass
+class MovingObjectRejection:
+    """Result of :func:`reject_moving_objects` for N vectors.
+
+    Fields:
+        background_mask: (N,) bool, the final decision (IMOR + RANSAC, or IMOR alone).
+        imor_mask: (N,) bool, IMOR's background (all True when IMOR fell back).
+        ransac_mask: (N,) bool, inliers of the three fundamental matrices, tested on IMOR's
+            background only; None without RANSAC.
+        votes: (N,) int64, supports that kept each vector (0 on fallback).
+        seed_index: the background seed (-1 on fallback).
+        supports: (S,) int64 indices of the supports (S <= M).
+        parallax: (2, N, 2) residual parallax of frames 0 and 2 against frame 1, pixels.
+        plane_inliers: (N,) bool, the dominant plane's inliers (in frames 0 and 2).
+        planar_background: IMOR's rigid parallax group looked like an object on a planar
+            background (see ``planar_background_ratio``), so only the plane was kept.
+        plane_trials: RANSAC samples drawn for the two planes.
+        ransac_trials: RANSAC samples drawn for the fundamental matrices (0 without RANSAC).
+        fallback: why IMOR was skipped (RANSAC alone then decides), else None.
+    """
+
+    background_mask: Tensor
+    imor_mask: Tensor
+    ransac_mask: Tensor | None
+    votes: Tensor
+    seed_index: int
+    supports: Tensor
+    parallax: Tensor
+    plane_inliers: Tensor
+    planar_background: bool
+    plane_trials: int
+    ransac_trials: int
+    fallback: str | None
+
+
+def check_frames(*frames: Tensor) -> Tensor:
+    """Validate three or more (N, 2) point sets of one N; return them stacked (F, N, 2), float64."""
+    if len(frames) < 3:
+        raise NotEnoughDataError(f"the rigidity constraint needs the points in three frames, got {len(frames)}")
+    names = {f"x{i}": (x, "N 2") for i, x in enumerate(frames)}
+    sizes = check_shapes(**names)
+    check_floating(**{name: x for name, (x, _) in names.items()})
+    check_finite(**{name: x for name, (x, _) in names.items()})
+    if sizes["N"] < MIN_VECTORS:
+        raise NotEnoughDataError(f"{sizes['N']} vectors are too few: the planar flow and RANSAC need at least {MIN_VECTORS}")
+    return torch.stack([x.double() for x in frames])
+
+
+def epipolar_consistency(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config | None = None,
+                         generator: torch.Generator | None = None) -> tuple[Tensor, int]:
+    """RANSAC alone: inliers of the robust F of pairs (1, 0), (1, 2) and (0, 2), batched.
+
+    Args:
+        x0, x1, x2: (N, 2) float64 pixels of the same points in three frames.
+
+    Returns:
+        (N,) bool, an inlier of all three F; and the RANSAC samples drawn in total.
+    """
+    config = config or Config()
+    first, second = torch.stack([x1, x1, x0]), torch.stack([x0, x2, x2])
+    found = estimate_fundamental(first, second, config=config, generator=generator)
+    return found.inlier_mask.all(0), int(found.num_trials.sum())
+
+
+def _seed_and_supports(x1: Tensor, warped: Tensor, parallax: Tensor, config: MovingObjectsConfig) -> tuple[int, Tensor] | str:
+    """Steps 2–3 of Alg. 5.4.1: the background seed and the supports, or why there are none."""
+    norm = parallax.square().sum((0, 2)).sqrt()  # (N,)
+    informative = torch.nonzero(norm >= config.min_support_parallax).flatten()
+    if informative.numel() < 2:
+        return (f"only {informative.numel()} vector(s) show a residual parallax of {config.min_support_parallax} px "
+                "(a planar or purely rotating scene, or all points moving together)")
+    by_norm = informative[torch.argsort(norm[informative])]
+    steps = torch.linspace(0, by_norm.numel() - 1, min(config.seed_candidates, by_norm.numel())).round().long()
+    candidates = by_norm[steps.unique()]
+    radius = config.neighbourhood * float((x1.amax(0) - x1.amin(0)).norm())
+
+    def consensus(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Residuals (P, N), 'an informative test outside the neighbourhood' (P, N), and the
+        number of such tests passed (P,)."""
+        residuals, strength = rigidity_residuals(points, warped, parallax)
+        residuals = residuals.abs()
+        tested = (torch.cdist(x1[points], x1) > radius) & (strength >= config.min_support_parallax)
+        return residuals, tested, ((residuals <= config.rigidity_threshold) & tested).sum(-1)
+
+    residuals, tested, counts = consensus(candidates)
+    best = int(torch.argmax(counts))
+    pool = informative[tested[best, informative]]
+    if pool.numel() == 0:
+        return "no vector with parallax outside the seed's neighbourhood"
+    # the 4M vectors that fit the seed best; of those, the M with the largest consensus
+    closest = pool[torch.argsort(residuals[best, pool])[: 4 * config.supports]]
+    _, _, support_counts = consensus(closest)
+    return int(candidates[best]), closest[torch.argsort(support_counts, descending=True, stable=True)[: config.supports]]
+
+
+def _votes(supports: Tensor, warped: Tensor, parallax: Tensor, config: MovingObjectsConfig) -> Tensor:
+    """Steps 4–5: how many supports keep each vector, (N,)."""
+    residuals = rigidity_residuals(supports, warped, parallax)[0].abs()  # (S, N)
+    if config.selection == "threshold":
+        kept = residuals <= config.rigidity_threshold
+    else:
+        N = residuals.shape[1]
+        rank = torch.argsort(torch.argsort(residuals, dim=1), dim=1)
+        kept = rank < math.ceil(config.keep_fraction * N)
+    return kept.sum(0)
+
+
+def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config | None = None,
+                          generator: torch.Generator | None = None) -> MovingObjectRejection:
+    """Keep the static background of N points tracked in three frames (IMOR + RANSAC, §5.4).
+
+    Args:
+        x0, x1, x2: (N, 2) pixel positions of the same N points in three frames (frame 1 is
+            the reference), N >= 12.
+        config: ``config.moving_objects`` (IMOR; ``ransac=False`` gives IMOR alone) and
+            ``config.fundamental`` (the cascade's RANSAC).
+        generator: random source of all RANSACs.
+
+    Returns:
+        A :class:`MovingObjectRejection`.
+
+    Raises:
+        ShapeError, InputError: malformed or mismatched input. NotEnoughDataError: fewer than 12
+        vectors, or RANSAC finds no fundamental matrix.
+    """
+    config = config or Config()
+    settings = config.moving_objects
+    frames = check_frames(x0, x1, x2)
+    N = frames.shape[1]
+    outcome = _imor(frames, settings, generator)
+    plane_trials = outcome.decomposition.num_trials
+    if outcome.fallback is None and int(outcome.background.sum()) < N / 2:
+        # the dominant plane may be a moving planar object: try the next plane, keep the larger background
+        second = _imor(frames, settings, generator, candidates=~outcome.decomposition.plane_inliers)
+        plane_trials += second.decomposition.num_trials
+        if second.fallback is None and int(second.background.sum()) > int(outcome.background.sum()):
+            outcome = second
+    imor, fallback = outcome.background, outcome.fallback
+    ransac_mask, trials = None, 0
+    background = imor
+    if settings.ransac or fallback is not None:
+        consistent, trials = epipolar_consistency(frames[0, imor], frames[1, imor], frames[2, imor], config=config, generator=generator)
+        ransac_mask = torch.zeros(N, dtype=torch.bool)
+        ransac_mask[imor] = consistent
+        background = imor & ransac_mask
+    decomposition = outcome.decomposition
+    return MovingObjectRejection(
+        background_mask=background, imor_mask=imor, ransac_mask=ransac_mask, votes=outcome.votes, seed_index=outcome.seed,
+        supports=outcome.supports, parallax=decomposition.parallax, plane_inliers=decomposition.plane_inliers,
+        planar_background=outcome.planar, plane_trials=plane_trials,
+        ransac_trials=trials, fallback=fallback,
+    )
+
+
+@dataclass
+class _Outcome:
+    decomposition: PlaneParallax
+    background: Tensor
+    votes: Tensor
+    seed: int
+    supports: Tensor
+    planar: bool
+    fallback: str | None
+
+
+def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Generator | None,
+          candidates: Tensor | None = None) -> _Outcome:
+    """Alg. 5.4.1 on (3, N, 2) frames with the dominant plane among ``candidates``."""
+    N = frames.shape[1]
+    decomposition = plane_parallax(frames[1], frames[[0, 2]], settings, generator, candidates)
+    warped, parallax = decomposition.warped, decomposition.parallax
+    plane_share = decomposition.plane_inliers.sum().item() / N
+    votes = torch.zeros(N, dtype=torch.long)
+    seed, supports, planar = -1, torch.zeros(0, dtype=torch.long), False
+    if not torch.isfinite(warped).all():
+        fallback = "the dominant plane maps some points to infinity"
+    elif plane_share < settings.min_plane_share:
+        fallback = f"no dominant plane: the best explains {plane_share:.0%} of the vectors (needs {settings.min_plane_share:.0%})"
+    else:
+        chosen = _seed_and_supports(frames[1], warped, parallax, settings)
+        fallback = chosen if isinstance(chosen, str) else None
+    background = torch.ones(N, dtype=torch.bool)
+    if fallback is None:
+        seed, supports = chosen
+        votes = _votes(supports, warped, parallax, settings)
+        background = votes >= math.ceil(settings.min_votes * supports.numel() / settings.supports)
+        norm = parallax.square().sum((0, 2)).sqrt()
+        rigid = norm[background & (norm >= settings.min_support_parallax)]
+        planar = (rigid.numel() > 0 and plane_share >= settings.planar_background_share
+                  and bool(torch.quantile(rigid, 0.1) > settings.planar_background_ratio * rigid.median()))
+        if planar:  # I&A's 2D case: the rigid parallax group is an object, the plane the background
+            background = norm < settings.min_support_parallax
+        if int(background.sum()) < MIN_VECTORS:
+            fallback = f"IMOR kept only {int(background.sum())} of {N} vectors"
+            background = torch.ones(N, dtype=torch.bool)
+    return _Outcome(decomposition, background, votes, seed, supports, planar, fallback)
+
+
+@dataclass
+class TrackRejection:
+    """Result of :func:`reject_moving_objects_in_tracks` for N tracks over F frames.
+
+    Fields:
+        background_mask: (N,) bool, rejected by fewer than ``min_rejection_share`` of the
+            triplets (tracks no triplet could test are kept).
+        rejection_share: (N,) share of the triplets that rejected each track.
+        triplets: the frame triplets (a, b, c) used, b the reference.
+        results: one :class:`MovingObjectRejection` per triplet.
+    """
+
+    background_mask: Tensor
+    rejection_share: Tensor
+    triplets: list[tuple[int, int, int]]
+    results: list[MovingObjectRejection]
+
+
+def reject_moving_objects_in_tracks(tracks: Tensor, *, triplets: list[tuple[int, int, int]] | None = None,
+                                    config: Config | None = None, generator: torch.Generator | None = None) -> TrackRejection:
+    """IMOR + RANSAC over several frame triplets of N tracks, combined by vote (ours).
+
+    One triplet sees only what changes between its three frames; an object moving at constant
+    velocity over them is invisible to the rigidity constraint (see
+    :func:`torchsfm.testing.synthetic_moving_scene`). Votes over triplets of different spans
+    catch what a single triplet misses.
+
+    Args:
+        tracks: (F, N, 2) pixels of N points tracked in all F >= 3 frames.
+        triplets: frame triplets to test (default: (0, k, 2k) for every k up to (F - 1) / 2).
+        config, generator: as for :func:`reject_moving_objects`.
+    """
+    config = config or Config()
+    if not isinstance(tracks, Tensor) or tracks.dim() != 3:
+        raise ShapeError(f"tracks must be an (F, N, 2) tensor, got {tuple(tracks.shape) if isinstance(tracks, Tensor) else type(tracks).__name__}")
+    frames = check_frames(*tracks.unbind(0))
+    F = frames.shape[0]
+    triplets = triplets or [(0, k, 2 * k) for k in range(1, (F - 1) // 2 + 1)]
+    for triplet in triplets:
+        if len(triplet) != 3 or len(set(triplet)) != 3 or not all(0 <= f < F for f in triplet):
+            raise ShapeError(f"triplet {triplet} must name three distinct frames of 0..{F - 1}")
+    results = [reject_moving_objects(*frames[list(triplet)], config=config, generator=generator) for triplet in triplets]
+    rejected = torch.stack([~result.background_mask for result in results]).double().mean(0)
+    return TrackRejection(background_mask=rejected < config.moving_objects.min_rejection_share, rejection_share=rejected,
+                          triplets=list(triplets), results=results)

@@ -1,0 +1,45 @@
+"""The parallax-based rigidity constraint over three frames (thesis §5.3, eq. 5.3.1–5.3.2).
+
+For a support point s and a point i, with Δ = p_w,i − p_w,s and Δ⊥ = (−Δy, Δx), a static pair
+has a_j = μ_iᵀΔ⊥ ∝ γ_i and b_j = μ_sᵀΔ⊥ ∝ γ_s with the same factor in frame j (the thesis' eq.
+5.3.1 has the ratio upside down: γ_i/γ_s = a/b; the constraint is unaffected). Eq. 5.3.2 as a
+ratio difference is unstable where b → 0; we use its cross-multiplied form
+
+    c = a_0 b_1 − b_0 a_1 = 0
+
+divided by its first-order standard deviation under isotropic unit noise on the four parallax
+vectors, sqrt(|Δ_0|² (a_1² + b_1²) + |Δ_1|² (a_0² + b_0²)). The residual is then in pixels of
+parallax noise: one threshold serves every support, scene and image size (the thesis' t1 = 1e-5
+was tied to its image size and coordinates, ERRATA).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def rigidity_residuals(support: Tensor, warped: Tensor, parallax: Tensor) -> tuple[Tensor, Tensor]:
+    """Normalized rigidity residuals of every point against each support.
+
+    Args:
+        support: (S,) indices of the support points.
+        warped: (2, N, 2) p_w of the two non-reference frames.
+        parallax: (2, N, 2) their residual parallax μ.
+
+    Returns:
+        (S, N) residuals in pixels, 0 where both points lie on the plane (the constraint holds
+        trivially there) and for the support itself; and (S, N) the strength of each test,
+        sqrt(b_0² + b_1²) / |Δ|: the support's parallax across the line joining the two points
+        (pixels). A test weaker than the noise passes every point.
+    """
+    delta = warped[:, None, :, :] - warped[:, support, None, :]  # (2, S, N, 2)
+    perpendicular = torch.stack([-delta[..., 1], delta[..., 0]], dim=-1)
+    a = (parallax[:, None, :, :] * perpendicular).sum(-1)  # (2, S, N) the point's
+    b = (parallax[:, support, None, :] * perpendicular).sum(-1)  # the support's
+    cross = a[0] * b[1] - b[0] * a[1]
+    length_sq = delta.square().sum(-1)
+    variance = length_sq[0] * (a[1].square() + b[1].square()) + length_sq[1] * (a[0].square() + b[0].square())
+    residual = torch.where(variance > 0, cross / variance.clamp_min(1e-300).sqrt(), torch.zeros_like(cross))
+    strength = (b.square().sum(0) / length_sq.mean(0).clamp_min(1e-300)).sqrt()
+    return residual, strength

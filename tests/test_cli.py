@@ -59,7 +59,7 @@ def test_unreadable_image(tmp_path, capsys):
 def test_images_of_different_size(tmp_path, capsys):
     small = tmp_path / "small.png"
     write_png(small, read_image(IMAGE2)[:, :256, :384])
-    _fails(tmp_path, capsys, [str(IMAGE1), str(small), "--K", str(K_FILE)], "differ in size: 768x512 and 384x256")
+    _fails(tmp_path, capsys, [str(IMAGE1), str(small), "--K", str(K_FILE)], "differ in size: image1 is 768x512, image2 384x256")
 
 
 def test_grey_and_colour_images_both_work(tmp_path):

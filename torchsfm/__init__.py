@@ -8,6 +8,7 @@ Stable entry points (outside code calls these):
 * :func:`estimate_absolute_pose` — a calibrated camera from 3-D↔2-D pairs.
 * :func:`reconstruct` — a calibrated image sequence to cameras and points.
 * :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
+* :func:`reject_moving_objects` — IMOR + RANSAC on points tracked over three frames.
 """
 
 from torchsfm.camera import Camera
@@ -21,6 +22,7 @@ from torchsfm.errors import (
     TorchSfmError,
 )
 from torchsfm.geometry.triangulation import TRIANGULATION_METHODS, triangulate
+from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects, reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
 from torchsfm.sfm.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.incremental import reconstruct
@@ -46,6 +48,7 @@ __all__ = [
     "DegenerateConfigurationError",
     "FundamentalEstimate",
     "InputError",
+    "MovingObjectRejection",
     "NotEnoughDataError",
     "Reconstruction",
     "RelativePose",
@@ -60,6 +63,8 @@ __all__ = [
     "estimate_relative_pose",
     "load_config",
     "reconstruct",
+    "reject_moving_objects",
+    "reject_moving_objects_in_tracks",
     "triangulate",
     "with_overrides",
 ]

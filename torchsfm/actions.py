@@ -32,6 +32,19 @@ SAMPLE = Path(__file__).resolve().parent / "data" / "fountain"
 Progress = Callable[[str], None]
 
 
+def moving_objects_summary(model: Reconstruction) -> list[dict]:
+    """Per frame triplet: vectors tested, rejected by IMOR, by the RANSAC after it, kept."""
+    rows = []
+    for views, result in model.moving_objects.items():
+        ransac = result.ransac_mask
+        rows.append({"views": list(views), "vectors": int(result.background_mask.numel()),
+                     "imor_rejected": int((~result.imor_mask).sum()),
+                     "ransac_rejected": 0 if ransac is None else int((result.imor_mask & ~ransac).sum()),
+                     "background": int(result.background_mask.sum()), "planar_background": result.planar_background,
+                     "fallback": result.fallback, "ransac_trials": result.ransac_trials})
+    return rows
+
+
 def two_view_summary(model: Reconstruction, config: Config, seconds: float) -> dict:
     """What a person wants to know about a two-view model, as JSON-ready values."""
     inliers = model.inlier_mask
@@ -46,6 +59,7 @@ def two_view_summary(model: Reconstruction, config: Config, seconds: float) -> d
         "t": model.cameras.t[1].tolist(),
         "K": [model.cameras.K[0].tolist(), model.cameras.K[1].tolist()],
         "seconds": {**model.timings, "total": seconds},
+        "moving_objects": moving_objects_summary(model),
         "config": config_to_dict(config),
     }
 
@@ -76,14 +90,16 @@ def write_files(out: Path, files: dict[str, bytes | str | Tensor]) -> None:
 
 
 def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path, *, config: Config | None = None,
-             seed: int = 0, progress: Progress | None = None) -> dict:
+             third: str | Path | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
     """Reconstruct two images with intrinsics K; write VRML, PLY, COLMAP text, a PNG and a JSON
-    summary into ``out``. Returns the summary."""
+    summary into ``out``. ``third`` is the frame after image2, read when moving-object rejection
+    is on. Returns the summary."""
     config = config or Config()
     start = time.perf_counter()
     first, second = read_image(image1), read_image(image2)
+    third_image = read_image(third) if third is not None and config.moving_objects.enabled else None
     pipeline = TwoViewReconstruction(config)
-    model = pipeline(first, second, K, names=(Path(image1).name, Path(image2).name),
+    model = pipeline(first, second, K, third_image=third_image, names=(Path(image1).name, Path(image2).name),
                      generator=torch.Generator().manual_seed(seed), progress=progress)
     summary = two_view_summary(model, config, time.perf_counter() - start)
     if progress:
@@ -117,6 +133,7 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
         "mean_track_length": model.observation_points.numel() / max(model.num_points, 1),
         "reprojection_rms_px": model.reprojection_rms(),
         "seconds": {**model.timings, "total": seconds},
+        "moving_objects": moving_objects_summary(model),
         "cameras": [{"image": name, "R": model.cameras.R[v].tolist(), "t": model.cameras.t[v].tolist()}
                     for v, name in enumerate(model.image_names)],
         "config": config_to_dict(config),

@@ -28,7 +28,7 @@ def _config(args: argparse.Namespace):
     from torchsfm.config import Config, load_config, with_overrides
 
     config = load_config(args.config) if args.config else Config()
-    return with_overrides(config, args.set)
+    return with_overrides(config, args.set + (["moving_objects.enabled=true"] if args.moving_objects else []))
 
 
 def _print_summary(summary: dict, out: Path) -> None:
@@ -39,7 +39,15 @@ def _print_summary(summary: dict, out: Path) -> None:
         truth = summary["ground_truth"]
         print(f"against the ground truth: rotation error {truth['rotation_error_deg']:.3f} deg, "
               f"translation direction error {truth['translation_direction_error_deg']:.3f} deg")
+    _print_moving_objects(summary)
     print(f"wrote {out}/model.wrl, points.ply, colmap/, matches.png, summary.json")
+
+
+def _print_moving_objects(summary: dict) -> None:
+    for triplet in summary.get("moving_objects", []):
+        note = f" (IMOR skipped: {triplet['fallback']})" if triplet["fallback"] else ""
+        print(f"views {triplet['views']}: {triplet['vectors']} vectors, IMOR rejected {triplet['imor_rejected']}, "
+              f"RANSAC rejected {triplet['ransac_rejected']} more, {triplet['background']} kept as static{note}")
 
 
 def _demo(args: argparse.Namespace) -> None:
@@ -54,7 +62,8 @@ def _two_view(args: argparse.Namespace) -> None:
 
     config = _config(args)
     K = read_intrinsics(args.K)
-    summary = two_view(args.image1, args.image2, K, args.out, config=config, seed=args.seed, progress=_progress(args.quiet))
+    summary = two_view(args.image1, args.image2, K, args.out, config=config, third=args.third, seed=args.seed,
+                       progress=_progress(args.quiet))
     _print_summary(summary, args.out)
 
 
@@ -70,6 +79,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
           f"{summary['seconds']['total']:.1f} s")
     for view in summary["unregistered"]:
         print(f"view {view['index']} not registered: {view['reason']}")
+    _print_moving_objects(summary)
     print(f"wrote {args.out}/model.wrl, points.ply, colmap/, summary.json")
 
 
@@ -85,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
     two_view = commands.add_parser("two-view", help="reconstruct two calibrated images")
     two_view.add_argument("image1", type=Path)
     two_view.add_argument("image2", type=Path)
+    two_view.add_argument("--third", type=Path, help="the frame after image2 (needed by --moving-objects)")
     _job_options(two_view)
     two_view.set_defaults(run=_two_view)
 
@@ -102,6 +113,8 @@ def _job_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random choice")
+    parser.add_argument("--moving-objects", action="store_true",
+                        help="reject independently moving objects (IMOR + RANSAC over frame triplets)")
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 

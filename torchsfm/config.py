@@ -41,6 +41,7 @@ class RansacConfig:
     confidence: float = 0.99
     max_trials: int = 10_000
     hypotheses_per_round: int = 512
+    initial_hypotheses: int = 4
     sampler: str = "bucketed"
     grid_size: int = 8
     scoring: str = "inlier_count"
@@ -53,6 +54,7 @@ class RansacConfig:
         _require(0 < self.confidence < 1, "confidence", self.confidence, "must lie in (0, 1)")
         _require(self.max_trials >= 1, "max_trials", self.max_trials, "must be >= 1")
         _require(self.hypotheses_per_round >= 1, "hypotheses_per_round", self.hypotheses_per_round, "must be >= 1")
+        _require(self.initial_hypotheses >= 1, "initial_hypotheses", self.initial_hypotheses, "must be >= 1")
         _require(self.sampler in ("bucketed", "uniform"), "sampler", self.sampler, "one of bucketed, uniform")
         _require(self.grid_size >= 1, "grid_size", self.grid_size, "must be >= 1")
         _require(self.scoring in ("inlier_count", "msac"), "scoring", self.scoring, "one of inlier_count, msac")
@@ -346,7 +348,10 @@ class MovingObjectsConfig:
     parallax norms of IMOR's background is above ``planar_background_ratio`` times their median,
     that rigid group is taken for an object on a planar background (Irani & Anandan's 2D case)
     and every vector with parallax is rejected (ours; a heuristic prior: with three frames or
-    more, a rigid object over a planar background is geometrically as valid a static scene). With ``ransac`` the
+    more, a rigid object over a planar background is geometrically as valid a static scene).
+    With ``second_plane``, when IMOR keeps less than half of the vectors the dominant plane may
+    be a moving planar object: the next plane (fitted to the vectors off the first) is tried and
+    the larger background kept (ours). With ``ransac`` the
     IMOR background goes on to RANSAC on the fundamental matrices of frame pairs (1, 0), (1, 2)
     and (0, 2) (IMOR + RANSAC). Over longer tracks, every frame triplet votes and a vector
     rejected by at least ``min_rejection_share`` of the triplets that tested it is rejected
@@ -354,7 +359,7 @@ class MovingObjectsConfig:
     """
 
     plane_model: str = "homography"
-    plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0))
+    plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, initial_hypotheses=64, local_refits=1))
     min_plane_share: float = 0.1
     seed_candidates: int = 20
     rigidity_threshold: float = 1.0
@@ -366,6 +371,7 @@ class MovingObjectsConfig:
     selection: str = "threshold"
     planar_background_ratio: float = 0.55
     planar_background_share: float = 0.4
+    second_plane: bool = True
     ransac: bool = True
     min_rejection_share: float = 0.25
     enabled: bool = False

@@ -361,3 +361,55 @@ def inside_boxes(tracks: Tensor, boxes: Tensor, margin: float = 4.0) -> Tensor:
     point lies in its frame's box."""
     low, high = boxes[:, None, :2] - margin, boxes[:, None, 2:] + margin
     return ((tracks >= low) & (tracks <= high)).all(-1).any(0)
+
+
+@dataclass
+class InsertedObjectTriplet:
+    """Three consecutive real frames with a pasted moving patch, and their matched triplets.
+
+    Fields:
+        images: three (3, H, W) uint8 frames with the patch. boxes: (3, 4) its boxes.
+        tracks: (3, N, 2) float64 corners of frame 1 matched into frames 0 and 2.
+        labels: (N,) 0 static (within ``static_threshold`` px of the ground-truth epipolar
+            geometry of pairs (1, 0) and (1, 2)), 1 on the patch, -1 other outliers.
+    """
+
+    images: list[Tensor]
+    boxes: Tensor
+    tracks: Tensor
+    labels: Tensor
+
+
+def match_triplet(images: list[Tensor], config=None) -> Tensor:
+    """Matches of image 0 to image 1 whose image-1 corner is also matched into image 2, as the
+    two-view pipeline chains them: (3, N, 2) float64 for three (C, H, W) images."""
+    from torchsfm.config import Config
+    from torchsfm.features.harris import HarrisCorners
+    from torchsfm.io.images import to_grey
+    from torchsfm.matching.matcher import PutativeMatcher, chain_matches
+
+    config = config or Config()
+    grey = torch.stack([to_grey(image) for image in images])
+    corners = HarrisCorners(config.harris)(grey)
+    points = [corners.of_image(v).double() for v in range(3)]
+    matcher = PutativeMatcher(config.matching)
+    first, onward = matcher(grey[0], grey[1], points[0], points[1]), matcher(grey[1], grey[2], points[1], points[2])
+    seen, third = chain_matches(first, onward, points[1].shape[0])
+    return torch.stack([points[0][first.index1[seen]], points[1][first.index2[seen]], points[2][third]])
+
+
+def inserted_object_triplet(sequence, first: int, patch: Tensor, *, static_threshold: float = 2.0,
+                            config=None) -> InsertedObjectTriplet:
+    """Frames first..first+2 of a :class:`~torchsfm.io.datasets.StrechaSequence` with ``patch``
+    pasted at :data:`PATCH_POSITIONS`, matched, and labelled against the ground truth."""
+    from torchsfm.io.images import read_image
+
+    frames, boxes = insert_moving_patch([read_image(sequence.images[first + j]) for j in range(3)], patch)
+    tracks = match_triplet(frames, config)
+    static = torch.ones(tracks.shape[1], dtype=torch.bool)
+    for other in (0, 2):
+        R, t = sequence.relative_pose(first + 1, first + other)
+        F = fundamental_from_pose(sequence.K[first + 1], sequence.K[first + other], R, t)
+        static &= torch.maximum(*epipolar_line_distances(F, tracks[1], tracks[other])) < static_threshold
+    labels = torch.where(inside_boxes(tracks, boxes), 1, torch.where(static, 0, -1))
+    return InsertedObjectTriplet(images=frames, boxes=boxes, tracks=tracks, labels=labels)

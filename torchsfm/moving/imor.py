@@ -171,7 +171,7 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
     N = frames.shape[1]
     outcome = _imor(frames, settings, generator)
     plane_trials = outcome.decomposition.num_trials
-    if outcome.fallback is None and int(outcome.background.sum()) < N / 2:
+    if settings.second_plane and outcome.fallback is None and int(outcome.background.sum()) < N / 2:
         # the dominant plane may be a moving planar object: try the next plane, keep the larger background
         second = _imor(frames, settings, generator, candidates=~outcome.decomposition.plane_inliers)
         plane_trials += second.decomposition.num_trials

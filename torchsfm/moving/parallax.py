@@ -59,7 +59,7 @@ def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfi
         x, _ = model.normalize(data)
         warped = others - planar_flow(flow[None], x)[0] / model.T[0, 0, 0]
     else:
-        model = JointModel(HomographyModel())
+        model = JointModel(HomographyModel, data, valid)
         found = ransac(model, data, config.plane_ransac, valid=valid, generator=generator)
         H = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 3, 3)
         warped = from_homogeneous(to_homogeneous(others) @ torch.linalg.inv(H).transpose(-1, -2))

@@ -92,8 +92,8 @@ def ransac(
 ) -> RansacResult:
     """Robustly fit ``model`` to each of B point sets.
 
-    Each round draws a batch of minimal samples per problem (the batch grows from 4 to
-    ``hypotheses_per_round``), fits them, and scores them. With ``preemptive_points`` > 0 every
+    Each round draws a batch of minimal samples per problem (the batch doubles from
+    ``initial_hypotheses`` up to ``hypotheses_per_round``), fits them, and scores them. With ``preemptive_points`` > 0 every
     hypothesis is first scored on a random subset of that many points and only the best
     ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
     problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
@@ -136,7 +136,7 @@ def ransac(
     trials = torch.zeros(B, dtype=torch.long, device=device)
     needed = torch.full((B,), config.max_trials, dtype=torch.long, device=device)
     active = num_valid >= s
-    round_size = min(4, config.hypotheses_per_round)
+    round_size = min(config.initial_hypotheses, config.hypotheses_per_round)
     while True:
         remaining = int(torch.where(active, needed - trials, 0).max()) if B else 0
         if remaining <= 0:

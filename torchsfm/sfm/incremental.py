@@ -152,7 +152,7 @@ def _match_pairs(greys: Tensor, corners: list[Tensor], config: Config, generator
             continue
         data = torch.cat([x1[inliers], x2[inliers]], -1)[None]
         homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
-        homography = ransac(HomographyModel(), data, homography_config, generator=generator)
+        homography = ransac(HomographyModel(data), data, homography_config, generator=generator)
         ratio = float(homography.inlier_mask.sum()) / float(inliers.sum())
         result[(i, j)] = _PairMatches(matches.index1[inliers], matches.index2[inliers], ratio)
     return result
@@ -329,9 +329,10 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], con
 
 def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator
                           ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection]]:
-    """Drop the tracks that IMOR + RANSAC rejects in at least ``min_rejection_share`` of the
-    consecutive view triplets (i, i+1, i+2) that see them; triplets seeing too few tracks are
-    skipped. Returns the kept tracks (renumbered) and each tested triplet's result."""
+    """Keep the tracks that IMOR + RANSAC rejects in fewer than ``min_rejection_share`` of the
+    consecutive view triplets (i, i+1, i+2) that see them; tracks no triplet sees cannot be
+    tested and are dropped too, and triplets seeing too few tracks are skipped. Returns the kept
+    tracks (renumbered) and each tested triplet's result."""
     offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
     pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]
     observation = torch.full((len(corners), tracks.num_tracks), -1, dtype=torch.long)
@@ -348,9 +349,8 @@ def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config,
         results[(first, first + 1, first + 2)] = result
         tested[seen] += 1
         rejected[seen] += (~result.background_mask).float()
-    moving = rejected >= config.moving_objects.min_rejection_share * tested.clamp_min(1)
-    moving &= tested > 0
-    keep = ~moving[tracks.track]
+    static = (tested > 0) & (rejected < config.moving_objects.min_rejection_share * tested)
+    keep = static[tracks.track]
     _, track = torch.unique(tracks.track[keep], return_inverse=True)
     kept = Tracks(view=tracks.view[keep], corner=tracks.corner[keep], track=track, num_tracks=int(track.max()) + 1 if track.numel() else 0)
     return kept, results

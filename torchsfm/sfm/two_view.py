@@ -25,14 +25,14 @@ from torchsfm.sfm.two_view_geometry import RelativePoseEstimator
 Progress = Callable[[str], None]
 
 
-def _check_images(image1: Tensor, image2: Tensor) -> None:
-    for name, image in (("image1", image1), ("image2", image2)):
+def _check_images(image1: Tensor, image2: Tensor, names: tuple[str, str] = ("image1", "image2")) -> None:
+    for name, image in zip(names, (image1, image2)):
         if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] not in (1, 3):
             shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
             raise ShapeError(f"{name} must be a (3, H, W) colour or (1, H, W) grey tensor, got {shape}")
     if image1.shape[-2:] != image2.shape[-2:]:
         (h1, w1), (h2, w2) = image1.shape[-2:], image2.shape[-2:]
-        raise InputError(f"the images differ in size: {w1}x{h1} and {w2}x{h2}")
+        raise InputError(f"the images differ in size: {names[0]} is {w1}x{h1}, {names[1]} {w2}x{h2}")
 
 
 def _colours(image: Tensor, points: Tensor) -> Tensor:
@@ -72,7 +72,7 @@ class TwoViewReconstruction(nn.Module):
             raise InputError("moving-object rejection (moving_objects.enabled) needs a third image: the frame after image2")
         _check_images(image1, image2)
         if moving:
-            _check_images(image2, third_image)
+            _check_images(image2, third_image, ("image2", "third_image"))
         check_intrinsics(K1=K1, K2=K2)
         K1, K2 = K1.double(), K2.double()
         timings: dict[str, float] = {}

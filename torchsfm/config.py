@@ -393,6 +393,64 @@ class MovingObjectsConfig:
 
 
 @dataclass(frozen=True)
+class ChessboardConfig:
+    """Chessboard corner detection (see :mod:`torchsfm.calibration.chessboard`).
+
+    Candidates are found on a copy whose long side is at most ``detection_size`` px, smoothed by
+    a Gaussian of ``sigma`` px: local maxima of the saddle response within ``nms_radius`` px,
+    above ``relative_threshold`` × its maximum, at most ``max_candidates``, that alternate
+    dark/bright four times on a circle of ``junction_radius`` px with at least ``min_contrast``
+    (intensities in [0, 1]). The lattice grows from up to ``seeds`` seeds and takes a candidate
+    within ``search_radius`` × the local corner spacing of its prediction; up to ``max_missing``
+    corners may be filled in. Sub-pixel refinement uses a window of 0.3 × the spacing (at most
+    ``max_half_window`` px each side).
+    """
+
+    detection_size: int = 1000
+    sigma: float = 1.5
+    nms_radius: int = 3
+    relative_threshold: float = 0.01
+    max_candidates: int = 600
+    junction_radius: float = 4.0
+    min_contrast: float = 0.1
+    seeds: int = 30
+    search_radius: float = 0.3
+    max_missing: int = 2
+    max_half_window: int = 10
+
+    def __post_init__(self) -> None:
+        _require(self.detection_size >= 64, "detection_size", self.detection_size, "must be >= 64")
+        _require(self.sigma > 0, "sigma", self.sigma, "must be > 0")
+        _require(self.nms_radius >= 1, "nms_radius", self.nms_radius, "must be >= 1")
+        _require(0 <= self.relative_threshold < 1, "relative_threshold", self.relative_threshold, "must lie in [0, 1)")
+        _require(self.max_candidates >= 4, "max_candidates", self.max_candidates, "must be >= 4")
+        _require(self.junction_radius > 0, "junction_radius", self.junction_radius, "must be > 0")
+        _require(0 <= self.min_contrast < 1, "min_contrast", self.min_contrast, "must lie in [0, 1)")
+        _require(self.seeds >= 1, "seeds", self.seeds, "must be >= 1")
+        _require(0 < self.search_radius < 0.5, "search_radius", self.search_radius, "must lie in (0, 0.5)")
+        _require(self.max_missing >= 0, "max_missing", self.max_missing, "must be >= 0")
+        _require(self.max_half_window >= 2, "max_half_window", self.max_half_window, "must be >= 2")
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Zhang's planar calibration (thesis Appendix A): per-view homographies by the normalized DLT
+    refined by LM, the closed form for K, the extrinsics, then one LM (``lm``; Marquardt damping,
+    since focal lengths and distortion differ by orders of magnitude) over fx, fy, cx, cy, k1, k2
+    and every pose. ``min_views`` boards are needed. With ``zero_skew`` (OpenCV's model) the skew
+    from the closed form is dropped before the LM.
+    """
+
+    chessboard: ChessboardConfig = field(default_factory=ChessboardConfig)
+    lm: LMConfig = field(default_factory=lambda: LMConfig(damping="diagonal", initial_damping=1e-3))
+    min_views: int = 3
+    zero_skew: bool = True
+
+    def __post_init__(self) -> None:
+        _require(self.min_views >= 3, "min_views", self.min_views, "must be >= 3 (Zhang's method)")
+
+
+@dataclass(frozen=True)
 class Config:
     """Every tunable of torchsfm, grouped by stage."""
 
@@ -408,6 +466,7 @@ class Config:
     resection: ResectionConfig = field(default_factory=ResectionConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
     moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
 
 def _build(cls: type, values: Any, prefix: str) -> Any:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.camera import project, projection_matrix
+from torchsfm.camera import pixels_to_normalized, project, projection_matrix, to_homogeneous, undistort_normalized
 from torchsfm.geometry.fundamental import epipolar_line_distances, fundamental_from_pose
 from torchsfm.geometry.rotation import angle_between, axis_angle_to_rotation, rotation_angle
 from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
@@ -413,3 +413,46 @@ def inserted_object_triplet(sequence, first: int, patch: Tensor, *, static_thres
         static &= torch.maximum(*epipolar_line_distances(F, tracks[1], tracks[other])) < static_threshold
     labels = torch.where(inside_boxes(tracks, boxes), 1, torch.where(static, 0, -1))
     return InsertedObjectTriplet(images=frames, boxes=boxes, tracks=tracks, labels=labels)
+
+
+def board_poses(num_views: int, seed: int, distance: float = 10.0, spread: float = 2.5) -> tuple[Tensor, Tensor]:
+    """Seeded board-to-camera poses for calibration tests: a 9 x 7 board of unit squares (its
+    middle at (4, 3)) ``distance`` units away, shifted up to ``spread`` units sideways, tilted
+    15-40 degrees about a random in-plane axis and turned up to 20 degrees about the view axis.
+    Returns R (V, 3, 3), t (V, 3)."""
+    g = torch.Generator().manual_seed(seed)
+    R, t = [], []
+    for _ in range(num_views):
+        axis_angle = _uniform((), 0, 2 * math.pi, g)
+        tilt = _uniform((), 15, 40, g) * math.pi / 180
+        axis = torch.stack([axis_angle.cos(), axis_angle.sin(), torch.zeros((), dtype=torch.float64)])
+        turn = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) * _uniform((), -20, 20, g) * math.pi / 180
+        rotation = axis_angle_to_rotation(axis * tilt) @ axis_angle_to_rotation(turn)
+        centre = torch.tensor([4.0, 3.0, 0.0], dtype=torch.float64)  # the middle of a 9 x 7 pattern, unit squares
+        offset = torch.stack([_uniform((), -spread, spread, g), _uniform((), -0.75 * spread, 0.75 * spread, g),
+                              _uniform((), distance - 1, distance + 1, g)])
+        R.append(rotation)
+        t.append(offset - rotation @ centre)
+    return torch.stack(R), torch.stack(t)
+
+
+def render_chessboard(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, pattern: tuple[int, int],
+                      size: tuple[int, int] = (640, 480), supersample: int = 3) -> Tensor:
+    """A (1, H, W) uint8 photo of a chessboard with (cols, rows) inner corners at (i, j) board
+    units (unit squares), a one-square white margin, on a grey background, seen by a camera with
+    radial distortion (k1, k2) at pose (R, t); anti-aliased by ``supersample``² samples a pixel."""
+    W, H = size
+    cols, rows = pattern
+    ys, xs = torch.meshgrid((torch.arange(H * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5,
+                            (torch.arange(W * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5, indexing="ij")
+    ideal = undistort_normalized(pixels_to_normalized(torch.stack([xs, ys], dim=-1).reshape(-1, 2), K), distortion)
+    plane = torch.linalg.inv(torch.stack([R[:, 0], R[:, 1], t], dim=-1))  # normalized image -> board plane
+    board = to_homogeneous(ideal) @ plane.T
+    in_front = board[:, 2] > 0
+    u, v = board[:, 0] / board[:, 2], board[:, 1] / board[:, 2]
+    squares = (u > -1) & (u < cols) & (v > -1) & (v < rows) & in_front
+    margin = (u > -2) & (u < cols + 1) & (v > -2) & (v < rows + 1) & in_front
+    dark = ((torch.floor(u) + torch.floor(v)) % 2 == 0) & squares
+    value = torch.where(dark, 0.08, torch.where(margin, 0.92, 0.5))
+    value = value.reshape(H, supersample, W, supersample).mean((1, 3))
+    return (value * 255).round().clamp(0, 255).to(torch.uint8)[None]

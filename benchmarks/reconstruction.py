@@ -39,7 +39,6 @@ def run_torchsfm(sequence):
 def run_pycolmap(sequence, threads: int):
     import pycolmap
 
-    from torchsfm.geometry.rotation import quaternion_to_rotation  # noqa: F401  (pycolmap gives matrices)
 
     K = sequence.K[0]
     params = f"{float(K[0, 0])},{float(K[1, 1])},{float(K[0, 2]) + 0.5},{float(K[1, 2]) + 0.5}"  # COLMAP: +0.5 px

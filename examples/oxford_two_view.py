@@ -14,8 +14,6 @@ import argparse
 import statistics
 from pathlib import Path
 
-import torch
-
 import torchsfm
 from torchsfm.io.datasets import read_oxford_multiview
 from torchsfm.testing import evaluate_two_view_pair

@@ -3,7 +3,6 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -71,7 +70,7 @@ def test_grey_and_colour_images_both_work(tmp_path):
 
 @pytest.mark.parametrize("content, message", [
     ("1 0 0\n0 1 0\n", "3x3 matrix"),
-    ("689 0 380\n0 0 251\n0 0 1\n", "K1 is singular"),
+    ("689 0 380\n0 0 251\n0 0 1\n", "K is singular"),
     ("a b c\n", "must hold numbers"),
 ])
 def test_bad_intrinsics(tmp_path, capsys, content, message):

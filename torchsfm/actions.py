@@ -12,9 +12,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
+import yaml
 from torch import Tensor
 
+from torchsfm.calibration.chessboard import detect_chessboard
+from torchsfm.calibration.files import calibration_yaml
+from torchsfm.calibration.zhang import board_points, calibrate_camera
 from torchsfm.config import Config, config_to_dict
+from torchsfm.errors import InputError, NotEnoughDataError
 from torchsfm.geometry.fundamental import fundamental_from_pose
 from torchsfm.io.atomic import atomic_write_bytes, atomic_write_text
 from torchsfm.io.colmap import colmap_text
@@ -26,7 +31,7 @@ from torchsfm.sfm.incremental import reconstruct
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
-from torchsfm.visualization import matches_figure, write_png
+from torchsfm.visualization import corners_figure, matches_figure, write_png
 
 SAMPLE = Path(__file__).resolve().parent / "data" / "fountain"
 Progress = Callable[[str], None]
@@ -89,17 +94,18 @@ def write_files(out: Path, files: dict[str, bytes | str | Tensor]) -> None:
             atomic_write_text(path, content)
 
 
-def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path, *, config: Config | None = None,
-             third: str | Path | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
-    """Reconstruct two images with intrinsics K; write VRML, PLY, COLMAP text, a PNG and a JSON
-    summary into ``out``. ``third`` is the frame after image2, read when moving-object rejection
-    is on. Returns the summary."""
+def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path, *, distortion: Tensor | None = None,
+             config: Config | None = None, third: str | Path | None = None, seed: int = 0,
+             progress: Progress | None = None) -> dict:
+    """Reconstruct two images with intrinsics K (and radial distortion); write VRML, PLY, COLMAP
+    text, a PNG and a JSON summary into ``out``. ``third`` is the frame after image2, read when
+    moving-object rejection is on. Returns the summary."""
     config = config or Config()
     start = time.perf_counter()
     first, second = read_image(image1), read_image(image2)
     third_image = read_image(third) if third is not None and config.moving_objects.enabled else None
     pipeline = TwoViewReconstruction(config)
-    model = pipeline(first, second, K, third_image=third_image, names=(Path(image1).name, Path(image2).name),
+    model = pipeline(first, second, K, distortion=distortion, third_image=third_image, names=(Path(image1).name, Path(image2).name),
                      generator=torch.Generator().manual_seed(seed), progress=progress)
     summary = two_view_summary(model, config, time.perf_counter() - start)
     if progress:
@@ -140,14 +146,15 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
     }
 
 
-def reconstruct_sequence(inputs: list[str | Path], K: Tensor, out: str | Path, *, config: Config | None = None,
-                         seed: int = 0, progress: Progress | None = None) -> dict:
-    """Reconstruct images (files or folders) with intrinsics K; write VRML, PLY, COLMAP text and a
-    JSON summary into ``out``. Returns the summary."""
+def reconstruct_sequence(inputs: list[str | Path], K: Tensor, out: str | Path, *, distortion: Tensor | None = None,
+                         config: Config | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
+    """Reconstruct images (files or folders) with intrinsics K (and radial distortion); write
+    VRML, PLY, COLMAP text and a JSON summary into ``out``. Returns the summary."""
     config = config or Config()
     start = time.perf_counter()
     paths = image_paths(inputs)
-    model = reconstruct(paths, K, config=config, generator=torch.Generator().manual_seed(seed), progress=progress)
+    model = reconstruct(paths, K, distortion=distortion, config=config, generator=torch.Generator().manual_seed(seed),
+                        progress=progress)
     summary = reconstruction_summary(model, time.perf_counter() - start, config)
     files: dict[str, bytes | str | Tensor] = {"model.wrl": vrml_text(model), "points.ply": ply_bytes(model.points3d, model.colors),
                                               "summary.json": json.dumps(summary, indent=2) + "\n"}
@@ -169,3 +176,43 @@ def demo(out: str | Path, *, progress: Progress | None = None) -> dict:
                                "translation_direction_error_deg": translation_direction_error_deg(t, t_true)}
     atomic_write_text(Path(out) / "summary.json", json.dumps(summary, indent=2) + "\n")
     return summary
+
+
+def calibrate(inputs: list[str | Path], pattern: tuple[int, int], square: float, out: str | Path, *,
+              config: Config | None = None, progress: Progress | None = None) -> dict:
+    """Calibrate from chessboard photos (files or folders): detect the boards, run Zhang's method,
+    write the calibration YAML to ``out`` and a PNG of the detected corners per image into
+    ``<out stem>_corners/``. Returns the calibration as a dict (plus ``corners_folder``).
+
+    Raises NotEnoughDataError (naming the images without a board) when fewer than
+    ``calibration.min_views`` boards are found.
+    """
+    config = config or Config()
+    report = progress or (lambda message: None)
+    paths = image_paths(inputs)
+    found, figures, not_found, sizes = {}, {}, {}, set()
+    for path in paths:
+        image = read_image(path)
+        sizes.add((image.shape[-1], image.shape[-2]))
+        detection = detect_chessboard(image, pattern, config.calibration.chessboard)
+        report(f"{path.name}: {'board found' if detection.found else detection.reason}")
+        if detection.found:
+            found[path.name] = detection.corners
+            figures[path.stem] = corners_figure(image, detection.corners, pattern)
+        else:
+            not_found[path.name] = detection.reason
+    if len(sizes) > 1:
+        raise InputError(f"the photos differ in size ({sorted(sizes)}): one calibration needs one camera setting")
+    if len(found) < config.calibration.min_views:
+        missing = "; ".join(f"{name}: {reason}" for name, reason in not_found.items()) or "none missing"
+        raise NotEnoughDataError(f"the {pattern[0]}x{pattern[1]} board was found in {len(found)} of {len(paths)} images, "
+                                 f"calibration needs {config.calibration.min_views} ({missing})")
+    report(f"calibrating from {len(found)} views")
+    calibration = calibrate_camera(board_points(pattern, square), torch.stack(list(found.values())), config.calibration)
+    out = Path(out)
+    folder = out.parent / f"{out.stem}_corners"
+    text = calibration_yaml(calibration, image_size=sizes.pop(), pattern=pattern, square=square, views=list(found),
+                            not_found=not_found)
+    write_files(folder, {f"{stem}.png": figure for stem, figure in figures.items()})
+    atomic_write_text(out, text)
+    return {**yaml.safe_load(text), "corners_folder": str(folder)}

@@ -58,22 +58,23 @@ def _demo(args: argparse.Namespace) -> None:
 
 def _two_view(args: argparse.Namespace) -> None:
     from torchsfm.actions import two_view
-    from torchsfm.io.images import read_intrinsics
+    from torchsfm.calibration.files import read_camera
 
     config = _config(args)
-    K = read_intrinsics(args.K)
-    summary = two_view(args.image1, args.image2, K, args.out, config=config, third=args.third, seed=args.seed,
-                       progress=_progress(args.quiet))
+    K, distortion = read_camera(args.K)
+    summary = two_view(args.image1, args.image2, K, args.out, distortion=distortion, config=config, third=args.third,
+                       seed=args.seed, progress=_progress(args.quiet))
     _print_summary(summary, args.out)
 
 
 def _reconstruct(args: argparse.Namespace) -> None:
     from torchsfm.actions import reconstruct_sequence
-    from torchsfm.io.images import read_intrinsics
+    from torchsfm.calibration.files import read_camera
 
     config = _config(args)
-    K = read_intrinsics(args.K)
-    summary = reconstruct_sequence(args.images, K, args.out, config=config, seed=args.seed, progress=_progress(args.quiet))
+    K, distortion = read_camera(args.K)
+    summary = reconstruct_sequence(args.images, K, args.out, distortion=distortion, config=config, seed=args.seed,
+                                   progress=_progress(args.quiet))
     print(f"{summary['views_registered']} views registered, {summary['points']} points, mean track length "
           f"{summary['mean_track_length']:.2f}, reprojection RMS {summary['reprojection_rms_px']:.3f} px, "
           f"{summary['seconds']['total']:.1f} s")
@@ -103,12 +104,45 @@ def build_parser() -> argparse.ArgumentParser:
     sequence.add_argument("images", nargs="+", type=Path, help="image files and/or folders of images, in sequence order")
     _job_options(sequence)
     sequence.set_defaults(run=_reconstruct)
+
+    calibrate = commands.add_parser("calibrate", help="calibrate a camera from chessboard photos (Zhang's method)")
+    calibrate.add_argument("images", nargs="+", type=Path, help="chessboard photos and/or folders of them")
+    calibrate.add_argument("--pattern", required=True, type=_pattern, help="inner corners per row x per column, e.g. 9x7")
+    calibrate.add_argument("--square", type=float, default=1.0, help="side of a square (sets the unit of the poses)")
+    calibrate.add_argument("--out", required=True, type=Path, help="calibration file to write, e.g. calib.yaml")
+    calibrate.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
+    calibrate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
+    calibrate.add_argument("--quiet", action="store_true", help="no progress messages")
+    calibrate.set_defaults(run=_calibrate, moving_objects=False)
     return parser
+
+
+def _pattern(text: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"pattern must look like 9x7, got {text!r}") from None
+    if cols < 2 or rows < 2:
+        raise argparse.ArgumentTypeError(f"a pattern needs at least 2x2 inner corners, got {text!r}")
+    return cols, rows
+
+
+def _calibrate(args: argparse.Namespace) -> None:
+    from torchsfm.actions import calibrate
+
+    summary = calibrate(args.images, args.pattern, args.square, args.out, config=_config(args), progress=_progress(args.quiet))
+    K = summary["K"]
+    print(f"{len(summary['views'])} views: fx {K[0][0]:.2f}, fy {K[1][1]:.2f}, cx {K[0][2]:.2f}, cy {K[1][2]:.2f}, "
+          f"k1 {summary['distortion'][0]:.5f}, k2 {summary['distortion'][1]:.5f}, reprojection RMS {summary['rms_px']:.3f} px")
+    for view in summary["not_found"]:
+        print(f"no board in {view['image']}: {view['reason']}")
+    print(f"wrote {args.out} and the detected corners in {summary['corners_folder']}/")
 
 
 def _job_options(parser: argparse.ArgumentParser) -> None:
     """The options every reconstruction command takes."""
-    parser.add_argument("--K", required=True, type=Path, help="text file with the 3x3 intrinsic matrix")
+    parser.add_argument("--K", required=True, type=Path,
+                        help="camera file: 3x3 K as text (optionally a 4th row 'k1 k2'), or a calib.yaml from 'torchsfm calibrate'")
     parser.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
     parser.add_argument("--out", required=True, type=Path, help="output folder")

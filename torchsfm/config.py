@@ -402,7 +402,8 @@ class ChessboardConfig:
     dark/bright four times on a circle of ``junction_radius`` px with at least ``min_contrast``
     (intensities in [0, 1]). The lattice grows from up to ``seeds`` seeds and takes a candidate
     within ``search_radius`` × the local corner spacing of its prediction; up to ``max_missing``
-    corners may be filled in. Sub-pixel refinement uses a window of 0.3 × the spacing (at most
+    corners may be filled in, and lattice nodes beyond the pattern are dropped as stray if their
+    saddle response is below ``stray_strength`` × the board's. Sub-pixel refinement uses a window of 0.3 × the spacing (at most
     ``max_half_window`` px each side).
     """
 
@@ -416,6 +417,7 @@ class ChessboardConfig:
     seeds: int = 30
     search_radius: float = 0.3
     max_missing: int = 2
+    stray_strength: float = 0.3
     max_half_window: int = 10
 
     def __post_init__(self) -> None:
@@ -429,6 +431,7 @@ class ChessboardConfig:
         _require(self.seeds >= 1, "seeds", self.seeds, "must be >= 1")
         _require(0 < self.search_radius < 0.5, "search_radius", self.search_radius, "must lie in (0, 0.5)")
         _require(self.max_missing >= 0, "max_missing", self.max_missing, "must be >= 0")
+        _require(0 <= self.stray_strength <= 1, "stray_strength", self.stray_strength, "must lie in [0, 1]")
         _require(self.max_half_window >= 2, "max_half_window", self.max_half_window, "must be >= 2")
 
 

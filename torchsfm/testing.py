@@ -456,3 +456,55 @@ def render_chessboard(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, patte
     value = torch.where(dark, 0.08, torch.where(margin, 0.92, 0.5))
     value = value.reshape(H, supersample, W, supersample).mean((1, 3))
     return (value * 255).round().clamp(0, 255).to(torch.uint8)[None]
+
+
+def render_corner_scene(texture: Tensor, K: Tensor, distortion: Tensor, R: Tensor, t: Tensor,
+                        size: tuple[int, int] = (640, 480), supersample: int = 2) -> Tensor:
+    """A (3, H, W) uint8 photo of a textured building corner seen by a camera with radial
+    distortion (k1, k2) at pose (R, t) (camera from world).
+
+    The scene: two walls meeting at the line x = 0, z = 10 (apex towards the camera), the left
+    one on x + z = 10 (x <= 0), the right one on -x + z = 10 (x >= 0), from y = -6 to 6, each
+    covered by the texture (C, h, w) stretched over 12 × 12 units; grey elsewhere.
+    """
+    W, H = size
+    ys, xs = torch.meshgrid((torch.arange(H * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5,
+                            (torch.arange(W * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5, indexing="ij")
+    rays = to_homogeneous(undistort_normalized(pixels_to_normalized(torch.stack([xs, ys], -1).reshape(-1, 2), K), distortion))
+    origin = -R.T @ t
+    direction = rays @ R  # world directions (rows: Rᵀ d)
+    colour = torch.full((rays.shape[0], texture.shape[0]), 0.5, dtype=torch.float64)
+    for side in (-1.0, 1.0):  # the wall side * x + z = 10 restricted to side * x >= 0... left wall: x <= 0
+        normal = torch.tensor([-side, 0.0, 1.0], dtype=torch.float64)  # left wall (side -1): x + z = 10
+        depth = (10 - normal @ origin) / (direction @ normal)
+        hit = origin + depth[:, None] * direction
+        along = (hit[:, 0] ** 2 + (hit[:, 2] - 10) ** 2).sqrt()  # distance from the corner line
+        on_wall = (depth > 0) & (side * hit[:, 0] >= 0) & (along <= 12) & (hit[:, 1].abs() <= 6)
+        u = along / 12 * 2 - 1 if side > 0 else 1 - along / 12 * 2  # texture x in [-1, 1], mirrored on the left
+        v = hit[:, 1] / 6
+        grid = torch.stack([u, v], -1).float()[None, None]
+        sampled = torch.nn.functional.grid_sample(texture.float()[None] / 255, grid, align_corners=True)[0, :, 0].T.double()
+        colour = torch.where(on_wall[:, None], sampled, colour)
+    image = colour.reshape(H, supersample, W, supersample, -1).mean((1, 3)).permute(2, 0, 1)
+    return (image * 255).round().clamp(0, 255).to(torch.uint8)
+
+
+def wide_angle_camera() -> tuple[Tensor, Tensor]:
+    """K and (k1, k2) of a 640×480 wide-angle camera with barrel distortion, for calibration tests."""
+    K = torch.tensor([[500.0, 0.0, 330.0], [0.0, 495.0, 235.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    return K, torch.tensor([-0.25, 0.08], dtype=torch.float64)
+
+
+def visible_board_poses(count: int, seed: int, K: Tensor, distortion: Tensor, pattern: tuple[int, int] = (9, 7),
+                        size: tuple[int, int] = (640, 480), margin: float = 15.0) -> tuple[Tensor, Tensor]:
+    """``count`` poses of :func:`board_poses` whose corners all lie ``margin`` px inside the image."""
+    from torchsfm.calibration.zhang import board_points, project_board
+
+    R, t = board_poses(4 * count, seed)
+    pixels = project_board(K, distortion, R, t, board_points(pattern, 1.0))
+    inside = ((pixels[..., 0] > margin) & (pixels[..., 0] < size[0] - 1 - margin) & (pixels[..., 1] > margin)
+              & (pixels[..., 1] < size[1] - 1 - margin)).all(-1)
+    keep = torch.nonzero(inside).flatten()[:count]
+    if keep.numel() < count:
+        raise ValueError(f"only {keep.numel()} of {4 * count} poses show the whole board")
+    return R[keep], t[keep]

@@ -91,3 +91,16 @@ def write_png(path: str | Path, image: Tensor) -> None:
         atomic_write_bytes(path, temporary.read_bytes())
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def corners_figure(image: Tensor, corners: Tensor, pattern: tuple[int, int]) -> Tensor:
+    """A (3, H, W) uint8 copy of the image with detected chessboard corners: rows joined in
+    yellow, corners green, the first corner (the board's origin) red."""
+    canvas = _as_rgb_uint8(image)
+    cols, rows = pattern
+    grid = corners.reshape(rows, cols, 2)
+    draw_segments(canvas, grid[:, :-1].reshape(-1, 2), grid[:, 1:].reshape(-1, 2), YELLOW)
+    radius = max(2, round(max(canvas.shape[-2:]) / 400))
+    draw_points(canvas, corners, GREEN, radius)
+    draw_points(canvas, corners[:1], RED, 2 * radius)
+    return canvas

@@ -12,7 +12,7 @@ from torchsfm.geometry.essential import (
     two_view_depths,
 )
 from torchsfm.geometry.fundamental import eight_point
-from torchsfm.testing import rotation_error_deg, synthetic_two_view, translation_direction_error_deg
+from torchsfm.testing import synthetic_two_view
 
 DOUBLE = dict(dtype=torch.float64)
 

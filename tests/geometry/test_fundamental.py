@@ -7,7 +7,6 @@ from torchsfm.geometry.fundamental import (
     eight_point_minimal,
     enforce_rank2,
     epipolar_line_distances,
-    fundamental_from_pose,
     fundamental_from_projections,
     minimal_null_vectors,
     normalize_scale,

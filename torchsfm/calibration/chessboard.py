@@ -149,8 +149,10 @@ def _fit_pattern(grid: dict[tuple[int, int], int], points: Tensor, strength: Ten
                  config: ChessboardConfig) -> Tensor | str:
     """(cols * rows, 2) ordered corners from a grown grid, or why it does not match the pattern.
 
-    A grid larger than the pattern (stray junctions along the board's edge) is cut to the
-    pattern-sized window, in either orientation, with the fewest holes and the strongest saddles.
+    A grid larger than the pattern is cut to the pattern-sized window, in either orientation, with
+    the fewest holes and the strongest saddles, if the corners left out are weak (stray junctions
+    along the board's edge: below ``stray_strength`` × the window's mean saddle response);
+    otherwise the board is larger than the pattern.
     """
     coordinates = torch.tensor(list(grid), dtype=torch.long)
     low = coordinates.amin(0)
@@ -170,6 +172,12 @@ def _fit_pattern(grid: dict[tuple[int, int], int], points: Tensor, strength: Ten
     if not windows:
         return f"the largest corner lattice is {span[0]}x{span[1]}, with no complete {cols}x{rows} window"
     _, _, window = min(windows, key=lambda w: (w[0], w[1]))
+    outside = torch.ones(span, dtype=torch.bool)
+    outside[torch.isin(index, window)] = False
+    extra = index[outside & (index >= 0)]
+    inner = window[window >= 0]
+    if extra.numel() and float(strength[extra].mean()) > config.stray_strength * float(strength[inner].mean()):
+        return f"the corner lattice is {span[0]}x{span[1]}, larger than the {cols}x{rows} pattern"
     table = torch.where((window >= 0)[..., None], points[window.clamp_min(0)], torch.full_like(points[:1], float("nan")))
     for _ in range(config.max_missing):  # fill holes by linear prediction from complete neighbours
         for i, j in torch.nonzero(torch.isnan(table[..., 0])).tolist():

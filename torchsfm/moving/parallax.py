@@ -49,7 +49,6 @@ def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfi
         candidates: optional (N,) bool, the vectors the plane may be fitted to (default: all);
             the decomposition covers all N.
     """
-    J = others.shape[0]
     data = torch.cat([reference, others.transpose(0, 1).flatten(1)], dim=-1)[None]  # (1, N, 2 + 2J)
     valid = None if candidates is None else candidates[None]
     if config.plane_model == "quadratic":

@@ -113,6 +113,5 @@ def _refine_starts(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2:
 
 def _truncated_cost(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, threshold: float) -> Tensor:
     """MSAC cost Σ min(Sampson, threshold²) of every start over all points: (B, S)."""
-    S = R.shape[1]
     F = fundamental_from_pose(K1[:, None], K2[:, None], R, t)  # (B, S, 3, 3)
     return sampson_error(F, x1[:, None], x2[:, None]).clamp_max(threshold**2).sum(-1)

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, check_intrinsics, project, projection_matrix
+from torchsfm.camera import Camera, check_intrinsics, project, projection_matrix, undistort_points
 from torchsfm.config import Config, RansacConfig
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, TorchSfmError
 from torchsfm.features.harris import detect_corners
@@ -33,6 +33,7 @@ from torchsfm.sfm.absolute_pose import estimate_absolute_pose
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
+from torchsfm.validation import check_finite
 
 Progress = Callable[[str], None]
 
@@ -54,7 +55,7 @@ def _triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
 class _Model:
     """The growing reconstruction: poses of registered views and a 3-D point per track."""
 
-    def __init__(self, tracks: Tracks, corners: list[Tensor], K: Tensor, config: Config) -> None:
+    def __init__(self, tracks: Tracks, corners: list[Tensor], raw: list[Tensor], K: Tensor, config: Config) -> None:
         self.tracks, self.corners, self.K, self.config = tracks, corners, K, config
         V = len(corners)
         self.R = torch.eye(3, dtype=torch.float64).repeat(V, 1, 1)
@@ -63,7 +64,8 @@ class _Model:
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
         offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
-        self.pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]  # (T, 2) one gather
+        self.pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]  # (T, 2) one gather, undistorted
+        self.raw_pixels = torch.cat(raw)[offsets[tracks.view] + tracks.corner]  # as detected (for colours)
 
     def centre(self, view: int) -> Tensor:
         return -self.R[view].T @ self.t[view]
@@ -88,7 +90,6 @@ class _Model:
     def triangulate_new(self, view: int) -> int:
         """Triangulate the tracks seen by ``view`` and another registered view that have no point
         yet, each with the partner view of widest baseline; keep the well-conditioned ones."""
-        settings = self.config.reconstruction
         view_of, track_of = self.tracks.view, self.tracks.track
         in_view = view_of == view
         candidates = torch.zeros(self.tracks.num_tracks, dtype=torch.bool)
@@ -131,15 +132,16 @@ class _Model:
         return good & (angle >= settings.min_point_angle)
 
 
-def _match_pairs(greys: Tensor, corners: list[Tensor], config: Config, generator: torch.Generator,
+def _match_pairs(greys: Tensor, raw: list[Tensor], corners: list[Tensor], config: Config, generator: torch.Generator,
                  report: Progress) -> dict[tuple[int, int], _PairMatches]:
-    """Verified matches of (i, i+1) and, with ``match_skip``, (i, i+2)."""
+    """Verified matches of (i, i+1) and, with ``match_skip``, (i, i+2): the images are matched at
+    the detected (``raw``) corners, the geometry uses the undistorted ``corners``."""
     V = len(corners)
     pairs = [(i, i + 1) for i in range(V - 1)] + ([(i, i + 2) for i in range(V - 2)] if config.reconstruction.match_skip else [])
     result = {}
     for i, j in pairs:
         report(f"matching views {i} and {j}")
-        matches = match_corners(greys[i], greys[j], corners[i].float(), corners[j].float(), config.matching)
+        matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching)
         x1, x2 = corners[i][matches.index1], corners[j][matches.index2]
         if x1.shape[0] < config.reconstruction.min_pair_inliers:
             continue
@@ -202,9 +204,9 @@ def _bundle(model: _Model, config: Config, fixed_view: int) -> None:
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
 
 
-def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str] | None = None,
-                config: Config | None = None, generator: torch.Generator | None = None,
-                progress: Progress | None = None) -> Reconstruction:
+def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Tensor | None = None,
+                names: list[str] | None = None, config: Config | None = None,
+                generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
     """Reconstruct a calibrated image sequence.
 
     Images given as paths are read here; one that cannot be read is listed in ``unregistered``
@@ -214,6 +216,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
         images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1],
             all the same size.
         K: intrinsics (3, 3) shared by all views, or (V, 3, 3).
+        distortion: radial (k1, k2) of the camera, (2,) or (V, 2); corners are undistorted
+            before any geometry (the model's keypoints are then ideal pixels).
         names: view names (default: the file names, or ``view0``, ``view1``, ...).
         config: every stage's settings; generator: the random source of all RANSACs.
         progress: called with a message at each step.
@@ -231,6 +235,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
     if K.shape != (len(images), 3, 3):
         raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
     check_intrinsics(K=K)
+    distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
+    check_finite(distortion=distortion)
     loaded, kept, unreadable = [], [], {}
     for v, image in enumerate(images):
         if isinstance(image, (str, Path)):
@@ -243,16 +249,17 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, names: list[str
         kept.append(v)
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
-    model = _reconstruct_views(loaded, K[kept], names=[names[v] for v in kept], config=config, generator=generator, progress=progress)
+    model = _reconstruct_views(loaded, K[kept], distortion[kept], names=[names[v] for v in kept], config=config,
+                               generator=generator, progress=progress)
     model.view_indices = [kept[v] for v in model.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
     return model
 
 
-def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], config: Config | None = None,
+def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, names: list[str], config: Config | None = None,
                        generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
-    """:func:`reconstruct` on decoded images, with K (V, 3, 3) and names given."""
+    """:func:`reconstruct` on decoded images, with K (V, 3, 3), distortion (V, 2) and names given."""
     config = config or Config()
     generator = generator or torch.Generator().manual_seed(0)
     report = progress or (lambda message: None)
@@ -271,8 +278,9 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], con
     greys = torch.stack([to_grey(image) for image in images])
     report(f"corners of {V} views")
     detected = timed("corners", lambda: detect_corners(greys, config.harris))
-    corners = [detected.of_image(v).double() for v in range(V)]
-    pairs = timed("matching", lambda: _match_pairs(greys, corners, config, generator, report))
+    raw = [detected.of_image(v) for v in range(V)]
+    corners = [undistort_points(raw[v].double(), K[v], distortion[v]) for v in range(V)]
+    pairs = timed("matching", lambda: _match_pairs(greys, raw, corners, config, generator, report))
     tracks = build_tracks([c.shape[0] for c in corners], {key: (m.index1, m.index2) for key, m in pairs.items()})
     report(f"{tracks.num_tracks} tracks from {len(pairs)} verified pairs")
     rejections = {}
@@ -280,7 +288,7 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, *, names: list[str], con
         tracks, rejections = timed("moving objects", lambda: _reject_moving_tracks(tracks, corners, config, generator))
         report(f"{tracks.num_tracks} tracks kept as static by IMOR + RANSAC")
     (first, second), R, t, _ = timed("initial pair", lambda: _initial_pair(pairs, corners, K, config, generator))
-    model = _Model(tracks, corners, K, config)
+    model = _Model(tracks, corners, raw, K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True
     model.triangulate_new(second)
@@ -372,7 +380,7 @@ def _result(model: _Model, images: list[Tensor], names: list[str], unregistered:
     first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
     stacked = torch.stack([image.expand(3, -1, -1) for image in images])  # (V, 3, H, W)
-    pixel = model.pixels[first_observation].round().long()
+    pixel = model.raw_pixels[first_observation].round().long()
     colours = stacked[tracks.view[first_observation], :, pixel[:, 1], pixel[:, 0]]  # (P, 3), one gather
     if colours.dtype != torch.uint8:
         colours = (colours.float() * 255).round().clamp(0, 255).to(torch.uint8)

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from torchsfm.camera import Camera, check_intrinsics
+from torchsfm.camera import Camera, check_intrinsics, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
 from torchsfm.features.harris import HarrisCorners
@@ -21,6 +21,7 @@ from torchsfm.matching.matcher import PutativeMatcher, chain_matches
 from torchsfm.moving.imor import reject_moving_objects
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view_geometry import RelativePoseEstimator
+from torchsfm.validation import check_finite, check_shapes
 
 Progress = Callable[[str], None]
 
@@ -48,7 +49,9 @@ class TwoViewReconstruction(nn.Module):
     """The two-view pipeline as stages: corners, putative matches, relative pose and points.
 
     ``forward(image1, image2, K1, K2=None)`` takes (3, H, W) colour or (1, H, W) grey images of
-    the same size (uint8 or float in [0, 1]) and (3, 3) intrinsics (K2 defaults to K1).
+    the same size (uint8 or float in [0, 1]) and (3, 3) intrinsics (K2 defaults to K1). With
+    ``distortion`` (k1, k2), the radial distortion of the camera that took them, corners are
+    undistorted before any geometry (the model's keypoints and matches are then ideal pixels).
 
     With ``config.moving_objects.enabled`` it also needs ``third_image``, the frame after
     image2: image2's corners are matched into both other images, and only matches seen in all
@@ -64,7 +67,7 @@ class TwoViewReconstruction(nn.Module):
         self.pose = RelativePoseEstimator(self.config)
 
     def forward(self, image1: Tensor, image2: Tensor, K1: Tensor, K2: Tensor | None = None, *,
-                third_image: Tensor | None = None, names: tuple[str, str] = ("image1", "image2"),
+                distortion: Tensor | None = None, third_image: Tensor | None = None, names: tuple[str, str] = ("image1", "image2"),
                 generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
         K2 = K1 if K2 is None else K2
         moving = self.config.moving_objects.enabled
@@ -75,6 +78,9 @@ class TwoViewReconstruction(nn.Module):
             _check_images(image2, third_image, ("image2", "third_image"))
         check_intrinsics(K1=K1, K2=K2)
         K1, K2 = K1.double(), K2.double()
+        if distortion is not None:
+            check_shapes(distortion=(distortion, "2"))
+            check_finite(distortion=distortion)
         timings: dict[str, float] = {}
         report = progress or (lambda message: None)
 
@@ -87,11 +93,14 @@ class TwoViewReconstruction(nn.Module):
 
         grey = torch.stack([to_grey(image) for image in (image1, image2, third_image) if image is not None])
         corners = stage("corners", lambda: self.corners(grey))
-        points = [corners.of_image(v) for v in range(grey.shape[0])]
+        raw = [corners.of_image(v) for v in range(grey.shape[0])]
         for view, name in enumerate([*names, "third_image"][: grey.shape[0]]):
-            if points[view].shape[0] < 8:
-                raise NotEnoughDataError(f"{name} has {points[view].shape[0]} corners, at least 8 are needed (a textureless image?)")
-        matches = stage("matching", lambda: self.matcher(grey[0], grey[1], points[0], points[1]))
+            if raw[view].shape[0] < 8:
+                raise NotEnoughDataError(f"{name} has {raw[view].shape[0]} corners, at least 8 are needed (a textureless image?)")
+        # images are matched as taken; the geometry sees ideal (undistorted) positions
+        points = [p.double() if distortion is None else undistort_points(p.double(), K, distortion.double())
+                  for p, K in zip(raw, (K1, K2, K2))]
+        matches = stage("matching", lambda: self.matcher(grey[0], grey[1], raw[0], raw[1]))
         x1, x2 = points[0][matches.index1].double(), points[1][matches.index2].double()
         if x1.shape[0] < 8:
             raise NotEnoughDataError(f"only {x1.shape[0]} putative matches between {names[0]} and {names[1]}, at least 8 are needed")
@@ -103,12 +112,12 @@ class TwoViewReconstruction(nn.Module):
         static = torch.ones(x1.shape[0], dtype=torch.bool)
         rejections = {}
         if moving:
-            static, rejections[(0, 1, 2)] = stage("moving objects", lambda: self._static_matches(grey, points, matches, generator))
+            static, rejections[(0, 1, 2)] = stage("moving objects", lambda: self._static_matches(grey, raw, points, matches, generator))
         pose = stage("geometry", lambda: self.pose(x1[static], x2[static], K1, K2, generator=generator))
         inliers = torch.zeros_like(static)
         inliers[static] = pose.inlier_mask
         P = int(inliers.sum())
-        colours = (_colours(image1, x1[inliers]) + _colours(image2, x2[inliers])) / 2
+        colours = (_colours(image1, raw[0][matches.index1][inliers]) + _colours(image2, raw[1][matches.index2][inliers])) / 2
         if image1.dtype != torch.uint8:
             colours = colours * 255
         identity = torch.eye(3, dtype=torch.float64)
@@ -130,12 +139,12 @@ class TwoViewReconstruction(nn.Module):
             moving_objects=rejections,
         )
 
-    def _static_matches(self, grey: Tensor, points: list[Tensor], matches, generator: torch.Generator | None):
+    def _static_matches(self, grey: Tensor, raw: list[Tensor], points: list[Tensor], matches, generator: torch.Generator | None):
         """(M,) mask of the image1–image2 matches that IMOR + RANSAC keeps as static, and its result."""
-        onward = self.matcher(grey[1], grey[2], points[1], points[2])
+        onward = self.matcher(grey[1], grey[2], raw[1], raw[2])
         seen, third = chain_matches(matches, onward, points[1].shape[0])
-        rejection = reject_moving_objects(points[0][matches.index1[seen]].double(), points[1][matches.index2[seen]].double(),
-                                          points[2][third].double(), config=self.config, generator=generator)
+        rejection = reject_moving_objects(points[0][matches.index1[seen]], points[1][matches.index2[seen]],
+                                          points[2][third], config=self.config, generator=generator)
         static = torch.zeros(matches.index1.numel(), dtype=torch.bool)
         static[seen[rejection.background_mask]] = True
         return static, rejection

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from torchsfm.camera import check_intrinsics, pixels_to_normalized, projection_matrix
+from torchsfm.camera import check_intrinsics, projection_matrix
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
 from torchsfm.geometry.essential import essential_from_fundamental

@@ -41,7 +41,7 @@ class RansacConfig:
     confidence: float = 0.99
     max_trials: int = 10_000
     hypotheses_per_round: int = 512
-    initial_hypotheses: int = 4
+    initial_hypotheses: int = 32
     sampler: str = "bucketed"
     grid_size: int = 8
     scoring: str = "inlier_count"
@@ -348,12 +348,11 @@ class MovingObjectsConfig:
     parallax norms of IMOR's background is above ``planar_background_ratio`` times their median,
     that rigid group is taken for an object on a planar background (Irani & Anandan's 2D case)
     and every vector with parallax is rejected (ours; a heuristic prior: with three frames or
-    more, a rigid object over a planar background is geometrically as valid a static scene).
-    With ``second_plane``, when IMOR keeps less than half of the vectors the dominant plane may
-    be a moving planar object: the next plane (fitted to the vectors off the first) is tried and
-    the larger background kept (ours). With ``ransac`` the
+    more, a rigid object over a planar background is geometrically as valid a static scene). With ``ransac`` the
     IMOR background goes on to RANSAC on the fundamental matrices of frame pairs (1, 0), (1, 2)
-    and (0, 2) (IMOR + RANSAC). Over longer tracks, every frame triplet votes and a vector
+    and (0, 2) (IMOR + RANSAC), with ``fundamental``'s settings except a first round of
+    ``ransac_initial_hypotheses`` samples (IMOR's background is nearly clean: a few samples
+    usually meet the adaptive stop). Over longer tracks, every frame triplet votes and a vector
     rejected by at least ``min_rejection_share`` of the triplets that tested it is rejected
     (ours). ``enabled`` turns the rejection on in the two-view and multi-view pipelines.
     """
@@ -371,8 +370,8 @@ class MovingObjectsConfig:
     selection: str = "threshold"
     planar_background_ratio: float = 0.55
     planar_background_share: float = 0.4
-    second_plane: bool = True
     ransac: bool = True
+    ransac_initial_hypotheses: int = 4
     min_rejection_share: float = 0.25
     enabled: bool = False
 
@@ -389,6 +388,7 @@ class MovingObjectsConfig:
         _require(self.selection in ("threshold", "rank"), "selection", self.selection, "one of threshold, rank")
         _require(self.planar_background_ratio > 0, "planar_background_ratio", self.planar_background_ratio, "must be > 0")
         _require(0 < self.planar_background_share <= 1, "planar_background_share", self.planar_background_share, "must lie in (0, 1]")
+        _require(self.ransac_initial_hypotheses >= 1, "ransac_initial_hypotheses", self.ransac_initial_hypotheses, "must be >= 1")
         _require(0 < self.min_rejection_share <= 1, "min_rejection_share", self.min_rejection_share, "must lie in (0, 1]")
 
 

@@ -24,6 +24,7 @@ result says why in ``fallback``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -56,7 +57,7 @@ class MovingObjectRejection:
         plane_inliers: (N,) bool, the dominant plane's inliers (in frames 0 and 2).
         planar_background: IMOR's rigid parallax group looked like an object on a planar
             background (see ``planar_background_ratio``), so only the plane was kept.
-        plane_trials: RANSAC samples drawn for the two planes.
+        plane_trials: RANSAC samples drawn for the dominant plane.
         ransac_trials: RANSAC samples drawn for the fundamental matrices (0 without RANSAC).
         fallback: why IMOR was skipped (RANSAC alone then decides), else None.
     """
@@ -170,18 +171,15 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
     frames = check_frames(x0, x1, x2)
     N = frames.shape[1]
     outcome = _imor(frames, settings, generator)
-    plane_trials = outcome.decomposition.num_trials
-    if settings.second_plane and outcome.fallback is None and int(outcome.background.sum()) < N / 2:
-        # the dominant plane may be a moving planar object: try the next plane, keep the larger background
-        second = _imor(frames, settings, generator, candidates=~outcome.decomposition.plane_inliers)
-        plane_trials += second.decomposition.num_trials
-        if second.fallback is None and int(second.background.sum()) > int(outcome.background.sum()):
-            outcome = second
     imor, fallback = outcome.background, outcome.fallback
     ransac_mask, trials = None, 0
     background = imor
     if settings.ransac or fallback is not None:
-        consistent, trials = epipolar_consistency(frames[0, imor], frames[1, imor], frames[2, imor], config=config, generator=generator)
+        cascade = config
+        if fallback is None:  # IMOR's background is nearly clean: start RANSAC with small rounds
+            ransac = dataclasses.replace(config.fundamental.ransac, initial_hypotheses=settings.ransac_initial_hypotheses)
+            cascade = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, ransac=ransac))
+        consistent, trials = epipolar_consistency(frames[0, imor], frames[1, imor], frames[2, imor], config=cascade, generator=generator)
         ransac_mask = torch.zeros(N, dtype=torch.bool)
         ransac_mask[imor] = consistent
         background = imor & ransac_mask
@@ -189,7 +187,7 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
     return MovingObjectRejection(
         background_mask=background, imor_mask=imor, ransac_mask=ransac_mask, votes=outcome.votes, seed_index=outcome.seed,
         supports=outcome.supports, parallax=decomposition.parallax, plane_inliers=decomposition.plane_inliers,
-        planar_background=outcome.planar, plane_trials=plane_trials,
+        planar_background=outcome.planar, plane_trials=decomposition.num_trials,
         ransac_trials=trials, fallback=fallback,
     )
 
@@ -205,11 +203,10 @@ class _Outcome:
     fallback: str | None
 
 
-def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Generator | None,
-          candidates: Tensor | None = None) -> _Outcome:
-    """Alg. 5.4.1 on (3, N, 2) frames with the dominant plane among ``candidates``."""
+def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Generator | None) -> _Outcome:
+    """Alg. 5.4.1 on (3, N, 2) frames."""
     N = frames.shape[1]
-    decomposition = plane_parallax(frames[1], frames[[0, 2]], settings, generator, candidates)
+    decomposition = plane_parallax(frames[1], frames[[0, 2]], settings, generator)
     warped, parallax = decomposition.warped, decomposition.parallax
     plane_share = decomposition.plane_inliers.sum().item() / N
     votes = torch.zeros(N, dtype=torch.long)

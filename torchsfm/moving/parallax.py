@@ -38,7 +38,7 @@ class PlaneParallax:
 
 
 def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfig,
-                   generator: torch.Generator | None = None, candidates: Tensor | None = None) -> PlaneParallax:
+                   generator: torch.Generator | None = None) -> PlaneParallax:
     """Register each frame to the reference by its dominant plane and split off the parallax.
 
     Args:
@@ -46,20 +46,17 @@ def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfi
         others: (J, N, 2) the same points in J other frames.
         config: plane model, its RANSAC settings.
         generator: random source of the RANSACs.
-        candidates: optional (N,) bool, the vectors the plane may be fitted to (default: all);
-            the decomposition covers all N.
     """
     data = torch.cat([reference, others.transpose(0, 1).flatten(1)], dim=-1)[None]  # (1, N, 2 + 2J)
-    valid = None if candidates is None else candidates[None]
     if config.plane_model == "quadratic":
-        model = PlanarFlowModel(data, valid)
-        found = ransac(model, data, config.plane_ransac, valid=valid, generator=generator)
+        model = PlanarFlowModel(data)
+        found = ransac(model, data, config.plane_ransac, generator=generator)
         flow = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 8) least squares on the inliers
         x, _ = model.normalize(data)
         warped = others - planar_flow(flow[None], x)[0] / model.T[0, 0, 0]
     else:
-        model = JointModel(HomographyModel, data, valid)
-        found = ransac(model, data, config.plane_ransac, valid=valid, generator=generator)
+        model = JointModel(HomographyModel, data)
+        found = ransac(model, data, config.plane_ransac, generator=generator)
         H = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 3, 3)
         warped = from_homogeneous(to_homogeneous(others) @ torch.linalg.inv(H).transpose(-1, -2))
     return PlaneParallax(warped=warped, parallax=warped - reference, plane_inliers=found.inlier_mask[0],

@@ -12,7 +12,7 @@ Three families of frame triplets with known labels:
 
 For each method (RANSAC = robust F of the frame pairs (1, 0), (1, 2), (0, 2); OpenCV USAC_MAGSAC on
 the same pairs when installed) the table gives, averaged over the triplets as in Table 5.1: F
-hypotheses drawn, plane hypotheses (IMOR's registration), milliseconds (median of 3 runs), wrong
+hypotheses drawn, plane hypotheses (IMOR's registration), milliseconds (median of 5 runs), wrong
 rejections (static vectors rejected), outliers not detected (moving or outlier vectors kept), inliers
 kept, total, and the two rates. Then Fig. 5.5 (vectors kept and rejected) and a reconstruction of
 three fountain frames with the inserted object, with and without the rejection (Fig. 5.6).
@@ -47,7 +47,7 @@ def herzjesu_patch(data: Path) -> torch.Tensor:
     return read_image(read_strecha(data / "strecha_herzjesu_P8").images[0])[:, 100:300, 260:500]
 
 
-def timed(function, repeats: int = 3):
+def timed(function, repeats: int = 5):
     """(result of the last run, median milliseconds)."""
     times = []
     for _ in range(repeats):

@@ -358,7 +358,7 @@ class MovingObjectsConfig:
     """
 
     plane_model: str = "homography"
-    plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, initial_hypotheses=64, local_refits=1))
+    plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, max_trials=2000, initial_hypotheses=128, local_refits=1))
     min_plane_share: float = 0.1
     seed_candidates: int = 20
     rigidity_threshold: float = 1.0

@@ -93,6 +93,9 @@ def epipolar_consistency(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config |
                          generator: torch.Generator | None = None) -> tuple[Tensor, int]:
     """RANSAC alone: inliers of the robust F of pairs (1, 0), (1, 2) and (0, 2), batched.
 
+    ``config.fundamental``'s RANSAC (with its LO refits) decides; the LM polish of F is skipped:
+    only the mask is used, and the pipelines estimate their geometry from the kept vectors.
+
     Args:
         x0, x1, x2: (N, 2) float64 pixels of the same points in three frames.
 
@@ -100,6 +103,7 @@ def epipolar_consistency(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config |
         (N,) bool, an inlier of all three F; and the RANSAC samples drawn in total.
     """
     config = config or Config()
+    config = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, refine=False))
     first, second = torch.stack([x1, x1, x0]), torch.stack([x0, x2, x2])
     found = estimate_fundamental(first, second, config=config, generator=generator)
     return found.inlier_mask.all(0), int(found.num_trials.sum())

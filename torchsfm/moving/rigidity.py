@@ -33,13 +33,13 @@ def rigidity_residuals(support: Tensor, warped: Tensor, parallax: Tensor) -> tup
         sqrt(b_0² + b_1²) / |Δ|: the support's parallax across the line joining the two points
         (pixels). A test weaker than the noise passes every point.
     """
-    delta = warped[:, None, :, :] - warped[:, support, None, :]  # (2, S, N, 2)
-    perpendicular = torch.stack([-delta[..., 1], delta[..., 0]], dim=-1)
-    a = (parallax[:, None, :, :] * perpendicular).sum(-1)  # (2, S, N) the point's
-    b = (parallax[:, support, None, :] * perpendicular).sum(-1)  # the support's
+    dx = warped[:, None, :, 0] - warped[:, support, None, 0]  # (2, S, N): Δ = p_w,i − p_w,s
+    dy = warped[:, None, :, 1] - warped[:, support, None, 1]
+    a = parallax[:, None, :, 1] * dx - parallax[:, None, :, 0] * dy  # μ_i · Δ⊥ with Δ⊥ = (−Δy, Δx)
+    b = parallax[:, support, None, 1] * dx - parallax[:, support, None, 0] * dy  # μ_s · Δ⊥
     cross = a[0] * b[1] - b[0] * a[1]
-    length_sq = delta.square().sum(-1)
-    variance = length_sq[0] * (a[1].square() + b[1].square()) + length_sq[1] * (a[0].square() + b[0].square())
+    length_sq = dx * dx + dy * dy
+    variance = length_sq[0] * (a[1] * a[1] + b[1] * b[1]) + length_sq[1] * (a[0] * a[0] + b[0] * b[0])
     residual = torch.where(variance > 0, cross / variance.clamp_min(1e-300).sqrt(), torch.zeros_like(cross))
-    strength = (b.square().sum(0) / length_sq.mean(0).clamp_min(1e-300)).sqrt()
+    strength = ((b[0] * b[0] + b[1] * b[1]) / (0.5 * (length_sq[0] + length_sq[1])).clamp_min(1e-300)).sqrt()
     return residual, strength

@@ -9,8 +9,11 @@ Stable entry points (outside code calls these):
 * :func:`reconstruct` — a calibrated image sequence to cameras and points.
 * :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
 * :func:`reject_moving_objects` — IMOR + RANSAC on points tracked over three frames.
+* :func:`detect_chessboard`, :func:`calibrate_camera` — chessboard corners and Zhang's calibration.
 """
 
+from torchsfm.calibration.chessboard import detect_chessboard
+from torchsfm.calibration.zhang import Calibration, board_points, calibrate_camera
 from torchsfm.camera import Camera
 from torchsfm.config import Config, load_config, with_overrides
 from torchsfm.errors import (
@@ -42,6 +45,7 @@ __all__ = [
     "AbsolutePose",
     "BundleProblem",
     "BundleResult",
+    "Calibration",
     "Camera",
     "Config",
     "ConfigError",
@@ -57,7 +61,10 @@ __all__ = [
     "ShapeError",
     "TRIANGULATION_METHODS",
     "TorchSfmError",
+    "board_points",
     "bundle_adjust",
+    "calibrate_camera",
+    "detect_chessboard",
     "estimate_absolute_pose",
     "estimate_fundamental",
     "estimate_relative_pose",

@@ -50,8 +50,8 @@ class MovingObjectRejection:
         imor_mask: (N,) bool, IMOR's background (all True when IMOR fell back).
         ransac_mask: (N,) bool, inliers of the three fundamental matrices, tested on IMOR's
             background only; None without RANSAC.
-        votes: (N,) int64, supports that kept each vector (0 on fallback).
-        seed_index: the background seed (-1 on fallback).
+        votes: (N,) int64, supports that kept each vector (0 where IMOR did not vote).
+        seed_index: the background seed (-1 where none could be chosen).
         supports: (S,) int64 indices of the supports (S <= M).
         parallax: (2, N, 2) residual parallax of frames 0 and 2 against frame 1, pixels.
         plane_inliers: (N,) bool, the dominant plane's inliers (in frames 0 and 2).

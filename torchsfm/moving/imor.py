@@ -13,7 +13,9 @@ objects and outliers from N points tracked over three frames.
    to the other point is at least ``min_support_parallax`` (ours: a support on or near the plane
    passes every vector, so a raw count prefers the least informative supports).
 4. Each support keeps the vectors it explains (within t1, or its best p, ``selection``).
-5. A vector kept by at least K supports is background.
+5. A vector kept by at least K supports is background. If the plane explains a large share of the
+   vectors and that rigid group's parallax is offset from zero as a whole, it is an object on a
+   planar background (Irani & Anandan's 2D case; ours): only vectors without parallax are kept.
 6. (IMOR + RANSAC) robust F on pairs (1, 0), (1, 2), (0, 2) of the background only; a vector
    must be an inlier of all three.
 

@@ -18,7 +18,8 @@ def test_text_camera_with_and_without_distortion(tmp_path):
     plain = tmp_path / "K.txt"
     plain.write_text("500 0 330\n0 495 235\n0 0 1  # K\n")
     K, distortion = read_camera(plain)
-    assert_close(K, K_TRUE) and assert_close(distortion, torch.zeros(2, dtype=torch.float64))
+    assert_close(K, K_TRUE)
+    assert_close(distortion, torch.zeros(2, dtype=torch.float64))
     with_distortion = tmp_path / "camera.txt"
     with_distortion.write_text("500 0 330\n0 495 235\n0 0 1\n-0.25 0.08\n")
     assert_close(read_camera(with_distortion)[1], DISTORTION_TRUE)
@@ -59,7 +60,8 @@ def test_calibrate_command_writes_the_calibration_and_the_corner_pictures(tmp_pa
     printed = capsys.readouterr().out
     assert "no board in blank.png" in printed and "fx" in printed
     K, distortion = read_camera(out)  # what --K accepts
-    assert_close(K, torch.tensor(document["K"], dtype=torch.float64)) and distortion.shape == (2,)
+    assert_close(K, torch.tensor(document["K"], dtype=torch.float64))
+    assert_close(distortion, torch.tensor(document["distortion"], dtype=torch.float64))
 
 
 def _fails(arguments, capsys, message, out):

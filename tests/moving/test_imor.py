@@ -131,16 +131,15 @@ def test_fountain_with_an_inserted_moving_object(shared_data):
 
 @pytest.mark.parametrize("name", ["cars1", "truck1", "kanatani1", "1R2RC"])
 def test_hopkins155_detects_more_moving_points_than_ransac(shared_data, name):
-    """Triplet (0, k, 2k), k = (F - 1) / 2: IMOR + RANSAC leaves at most half as many moving
-    tracks undetected as RANSAC alone (which leaves 10-40% here) and wrongly rejects no more
-    static ones (+1 track)."""
+    """Triplet (0, k, 2k), k = (F - 1) / 2: RANSAC alone leaves >= 10% of the moving tracks;
+    IMOR + RANSAC leaves <= 2% and wrongly rejects no more static ones (+1 track)."""
     sequence = read_hopkins155(shared_data / "hopkins155_subset" / name)
     k = (sequence.tracks.shape[0] - 1) // 2
     triplet = sequence.tracks[[0, k, 2 * k]]
     alone, _ = epipolar_consistency(*triplet, generator=torch.Generator().manual_seed(0))
     result = reject_moving_objects(*triplet, generator=torch.Generator().manual_seed(0))
     ransac, ours = rejection_figures(alone, sequence.labels), rejection_figures(result.background_mask, sequence.labels)
-    assert ransac["undetected_rate"] >= 0.1 and ours["undetected"] <= ransac["undetected"] // 2
+    assert ransac["undetected_rate"] >= 0.1 and ours["undetected_rate"] <= 0.02
     assert ours["wrong_rejections"] <= ransac["wrong_rejections"] + 1
 
 
@@ -155,3 +154,13 @@ def test_hopkins155_votes_over_triplets(shared_data):
         undetected, wrong = undetected + figures["undetected"], wrong + figures["wrong_rejections"]
         moving, static = moving + int((sequence.labels != 0).sum()), static + int((sequence.labels == 0).sum())
     assert undetected <= 0.05 * moving and wrong <= 0.05 * static
+
+
+def test_thesis_quadratic_plane_model_on_a_synthetic_scene():
+    """plane_model=quadratic (eq. 5.2.1): on a small-motion synthetic scene the cascade meets the
+    same targets (<= 1% undetected, <= 10% wrongly rejected)."""
+    scene = synthetic_moving_scene(1, num_objects=2)
+    config = with_overrides(Config(), ["moving_objects.plane_model=quadratic"])
+    result = reject_moving_objects(*scene.tracks, config=config, generator=torch.Generator().manual_seed(0))
+    figures = rejection_figures(result.background_mask, scene.labels)
+    assert result.fallback is None and figures["undetected_rate"] <= 0.01 and figures["wrong_rate"] <= 0.10

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.camera import to_homogeneous
-from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.geometry.normalization import apply_affine, hartley_normalize
 from torchsfm.geometry.rotation import skew
 from torchsfm.geometry.small_linalg import smallest_eigenvector_sym3
 
@@ -93,10 +93,7 @@ def minimal_null_vectors(x1: Tensor, x2: Tensor, A1: Tensor, A2: Tensor) -> Tens
     Returns:
         (B, K, 3, 3) G, NaN for a degenerate sample.
     """
-    def condition(x: Tensor, A: Tensor) -> Tensor:
-        return x @ A[:, None, :2, :2].transpose(-1, -2) + A[:, None, None, :2, 2]
-
-    design = epipolar_design_matrix(condition(x1, A1), condition(x2, A2))  # (B, K, 8, 9)
+    design = epipolar_design_matrix(apply_affine(A1[:, None], x1), apply_affine(A2[:, None], x2))  # (B, K, 8, 9)
     gauge = design.new_tensor(_GAUGE_ROW).expand(*design.shape[:-2], 1, 9)
     rhs = design.new_zeros(*design.shape[:-2], 9, 1)
     rhs[..., 8, 0] = 1.0

@@ -31,3 +31,9 @@ def hartley_normalize(x: Tensor, weights: Tensor | None = None) -> tuple[Tensor,
     T = torch.diag_embed(torch.cat([scale.expand(*scale.shape[:-1], D), torch.ones_like(scale)], dim=-1))
     T[..., :D, D] = -scale * centroid
     return centered * scale[..., None], T
+
+
+def apply_affine(T: Tensor, x: Tensor) -> Tensor:
+    """T x for points (*, N, 2) and affine maps T (*, 3, 3) (last row 0 0 1, e.g. from
+    :func:`hartley_normalize`) whose batch dimensions broadcast against x's: (*, N, 2)."""
+    return x @ T[..., :2, :2].transpose(-1, -2) + T[..., None, :2, 2]

@@ -9,7 +9,7 @@ from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
-from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.geometry.normalization import apply_affine, hartley_normalize
 from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
 
 
@@ -111,8 +111,7 @@ class HomographyModel:
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         T1, T2 = self.T1[:, None], self.T2[:, None]  # (B, 1, 3, 3)
-        x = samples[..., :2] * T1[..., :1, :1] + T1[..., None, :2, 2]
-        u = samples[..., 2:] * T2[..., :1, :1] + T2[..., None, :2, 2]
+        x, u = apply_affine(T1, samples[..., :2]), apply_affine(T2, samples[..., 2:])
         one, zero = torch.ones_like(x[..., :1]), torch.zeros_like(x[..., :1])
         rows_u = torch.cat([x, one, zero, zero, zero, -u[..., :1] * x], dim=-1)  # (B, K, 4, 8)
         rows_v = torch.cat([zero, zero, zero, x, one, -u[..., 1:] * x], dim=-1)
@@ -161,11 +160,10 @@ class PlanarFlowModel:
     def normalize(self, data: Tensor) -> tuple[Tensor, Tensor]:
         """Reference points (B, ..., 2) and displacements (B, ..., J, 2) of (B, ..., D) rows in
         the normalized frame."""
-        T = self.T.reshape(self.T.shape[0], *[1] * (data.dim() - 2), 3, 3)
-        scale, shift = T[..., 0, 0, None], T[..., :2, 2]  # (B, ..., 1), (B, ..., 2)
+        T = self.T.reshape(self.T.shape[0], *[1] * (data.dim() - 3), 3, 3)
         x = data[..., :2]
-        others = data[..., 2:].unflatten(-1, (-1, 2))
-        return x * scale + shift, (others - x[..., None, :]) * scale[..., None]
+        others = data[..., 2:].unflatten(-1, (-1, 2))  # (B, ..., N, J, 2)
+        return apply_affine(T, x), (others - x[..., None, :]) * T[..., None, None, 0, 0, None]
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         x, displacement = self.normalize(samples)  # (B, K, 3, 2), (B, K, 3, J, 2)

@@ -20,7 +20,7 @@ from torch import Tensor
 
 from torchsfm.camera import Camera, check_intrinsics, project, projection_matrix, undistort_points
 from torchsfm.config import Config, RansacConfig
-from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, TorchSfmError
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError, TorchSfmError
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.io.images import read_image, to_grey
@@ -33,7 +33,7 @@ from torchsfm.sfm.absolute_pose import estimate_absolute_pose
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
-from torchsfm.validation import check_finite
+from torchsfm.validation import check_finite, check_shapes
 
 Progress = Callable[[str], None]
 
@@ -63,9 +63,8 @@ class _Model:
         self.registered = torch.zeros(V, dtype=torch.bool)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
-        offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
-        self.pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]  # (T, 2) one gather, undistorted
-        self.raw_pixels = torch.cat(raw)[offsets[tracks.view] + tracks.corner]  # as detected (for colours)
+        self.pixels = tracks.gather(corners)  # (T, 2) undistorted
+        self.raw_pixels = tracks.gather(raw)  # as detected (for colours)
 
     def centre(self, view: int) -> Tensor:
         return -self.R[view].T @ self.t[view]
@@ -235,6 +234,10 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Ten
     if K.shape != (len(images), 3, 3):
         raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
     check_intrinsics(K=K)
+    if distortion is not None:
+        check_shapes(distortion=(distortion, "* 2"))
+        if distortion.dim() == 2 and distortion.shape[0] != len(images):
+            raise ShapeError(f"distortion must be (2,) or ({len(images)}, 2), got {tuple(distortion.shape)}")
     distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
     check_finite(distortion=distortion)
     loaded, kept, unreadable = [], [], {}
@@ -341,8 +344,7 @@ def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config,
     consecutive view triplets (i, i+1, i+2) that see them; tracks no triplet sees cannot be
     tested and are dropped too, and triplets seeing too few tracks are skipped. Returns the kept
     tracks (renumbered) and each tested triplet's result."""
-    offsets = torch.cumsum(torch.tensor([0] + [c.shape[0] for c in corners]), 0)
-    pixels = torch.cat(corners)[offsets[tracks.view] + tracks.corner]
+    pixels = tracks.gather(corners)
     observation = torch.full((len(corners), tracks.num_tracks), -1, dtype=torch.long)
     observation[tracks.view, tracks.track] = torch.arange(tracks.view.numel())
     rejected = torch.zeros(tracks.num_tracks)
@@ -358,10 +360,7 @@ def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config,
         tested[seen] += 1
         rejected[seen] += (~result.background_mask).float()
     static = (tested > 0) & (rejected < config.moving_objects.min_rejection_share * tested)
-    keep = static[tracks.track]
-    _, track = torch.unique(tracks.track[keep], return_inverse=True)
-    kept = Tracks(view=tracks.view[keep], corner=tracks.corner[keep], track=track, num_tracks=int(track.max()) + 1 if track.numel() else 0)
-    return kept, results
+    return tracks.subset(static), results
 
 
 def _result(model: _Model, images: list[Tensor], names: list[str], unregistered: dict[int, str],

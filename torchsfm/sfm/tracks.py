@@ -34,6 +34,18 @@ class Tracks:
         """(num_tracks,) number of views of every track."""
         return torch.bincount(self.track, minlength=self.num_tracks)
 
+    def gather(self, per_view: list[Tensor]) -> Tensor:
+        """Each observation's row of a per-view, per-corner table (e.g. corner pixels (K_v, 2)):
+        (T, ...), one gather."""
+        offsets = torch.cumsum(torch.tensor([0] + [values.shape[0] for values in per_view]), 0)
+        return torch.cat(per_view)[offsets[self.view] + self.corner]
+
+    def subset(self, keep: Tensor) -> Tracks:
+        """The tracks where ``keep`` (num_tracks,) bool is True, renumbered in order."""
+        mine = keep[self.track]
+        _, track = torch.unique(self.track[mine], return_inverse=True)
+        return Tracks(view=self.view[mine], corner=self.corner[mine], track=track, num_tracks=int(keep.sum()))
+
 
 def build_tracks(num_corners: list[int], matches: dict[tuple[int, int], tuple[Tensor, Tensor]]) -> Tracks:
     """Chain pairwise matches into tracks.

@@ -9,7 +9,7 @@ Three families of frame triplets with known labels:
   frame moving on its own (as the thesis did), matched by the two-view pipeline's matcher and
   labelled with the ground-truth epipolar geometry (:func:`torchsfm.testing.inserted_object_triplet`);
 * Hopkins155: real tracks with motion labels, the triplet (0, k, 2k) with k = (F - 1) / 2, and
-  votes over every triplet (0, k, 2k) (:func:`torchsfm.moving.imor.reject_moving_objects_in_tracks`).
+  votes over every triplet (0, k, 2k) (:func:`torchsfm.moving.whole_track.reject_moving_objects_in_tracks`).
 
 For each method (RANSAC = robust F of the frame pairs (1, 0), (1, 2), (0, 2); OpenCV USAC_MAGSAC on
 the same pairs when installed) the table gives, averaged over the triplets as in Table 5.1: F
@@ -35,7 +35,8 @@ from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import read_hopkins155, read_strecha
 from torchsfm.io.images import read_image
-from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects, reject_moving_objects_in_tracks
+from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects
+from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import (insert_moving_patch, inserted_object_triplet, inside_boxes, rejection_figures,
                               synthetic_moving_scene)
 

@@ -9,6 +9,7 @@ Stable entry points (outside code calls these):
 * :func:`reconstruct` — a calibrated image sequence to cameras and points.
 * :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
 * :func:`reject_moving_objects` — IMOR + RANSAC on points tracked over three frames.
+* :func:`reject_moving_objects_in_tracks` — the same over whole tracks with gaps.
 * :func:`detect_chessboard`, :func:`calibrate_camera` — chessboard corners and Zhang's calibration.
 """
 
@@ -25,7 +26,8 @@ from torchsfm.errors import (
     TorchSfmError,
 )
 from torchsfm.geometry.triangulation import TRIANGULATION_METHODS, triangulate
-from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects, reject_moving_objects_in_tracks
+from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects
+from torchsfm.moving.whole_track import TrackRejection, reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
 from torchsfm.sfm.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.incremental import reconstruct
@@ -61,6 +63,7 @@ __all__ = [
     "ShapeError",
     "TRIANGULATION_METHODS",
     "TorchSfmError",
+    "TrackRejection",
     "board_points",
     "bundle_adjust",
     "calibrate_camera",

@@ -354,7 +354,14 @@ class MovingObjectsConfig:
     ``ransac_initial_hypotheses`` samples (IMOR's background is nearly clean: a few samples
     usually meet the adaptive stop). Over longer tracks, every frame triplet votes and a vector
     rejected by at least ``min_rejection_share`` of the triplets that tested it is rejected
-    (ours). ``enabled`` turns the rejection on in the two-view and multi-view pipelines.
+    (ours). Whole tracks (:func:`torchsfm.reject_moving_objects_in_tracks`, gaps allowed) are
+    judged by ``track_method``: ``triplets`` (those votes), ``rigid_groups`` (up to
+    ``max_motions`` rigid groups of at least ``min_group_tracks`` tracks, each a projective
+    reconstruction over all frames whose cameras come from ``resection_ransac`` and
+    ``track_refinements`` alternations; a track belongs to a group within the larger of the χ²
+    bound at ``track_significance`` and ``track_tolerance`` px RMS; the static group is the one
+    the votes reject least) or ``both``. ``enabled`` turns the rejection on in the two-view and
+    multi-view pipelines.
     """
 
     plane_model: str = "homography"
@@ -373,6 +380,13 @@ class MovingObjectsConfig:
     ransac: bool = True
     ransac_initial_hypotheses: int = 4
     min_rejection_share: float = 0.25
+    track_method: str = "triplets"
+    max_motions: int = 5
+    min_group_tracks: int = 8
+    track_tolerance: float = 1.0
+    track_significance: float = 1e-3
+    track_refinements: int = 3
+    resection_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, max_trials=2000))
     enabled: bool = False
 
     def __post_init__(self) -> None:
@@ -389,6 +403,13 @@ class MovingObjectsConfig:
         _require(self.planar_background_ratio > 0, "planar_background_ratio", self.planar_background_ratio, "must be > 0")
         _require(0 < self.planar_background_share <= 1, "planar_background_share", self.planar_background_share, "must lie in (0, 1]")
         _require(self.ransac_initial_hypotheses >= 1, "ransac_initial_hypotheses", self.ransac_initial_hypotheses, "must be >= 1")
+        _require(self.track_method in ("triplets", "rigid_groups", "both"), "track_method", self.track_method,
+                 "one of triplets, rigid_groups, both")
+        _require(self.max_motions >= 1, "max_motions", self.max_motions, "must be >= 1")
+        _require(self.min_group_tracks >= 6, "min_group_tracks", self.min_group_tracks, "must be >= 6 (a camera needs 6 points)")
+        _require(self.track_tolerance > 0, "track_tolerance", self.track_tolerance, "must be > 0")
+        _require(0 < self.track_significance < 1, "track_significance", self.track_significance, "must lie in (0, 1)")
+        _require(self.track_refinements >= 0, "track_refinements", self.track_refinements, "must be >= 0")
         _require(0 < self.min_rejection_share <= 1, "min_rejection_share", self.min_rejection_share, "must lie in (0, 1]")
 
 

@@ -184,15 +184,39 @@ class MotionTracks:
 
     Fields:
         name: the sequence.
-        tracks: (F, N, 2) float64 pixel positions as stored.
+        tracks: (F, N, 2) float64 pixel positions as stored (0 where not visible).
         labels: (N,) int64: 0 the static background, 1, 2, ... the moving objects.
         image_size: (width, height).
+        visible: (F, N) bool, where each track is seen (all True for Hopkins155).
     """
 
     name: str
     tracks: Tensor
     labels: Tensor
     image_size: tuple[int, int]
+    visible: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if self.visible is None:
+            self.visible = torch.ones(self.tracks.shape[:2], dtype=torch.bool)
+
+
+def _load_mat(path: Path) -> dict:
+    """A MATLAB v5 file (needs SciPy)."""
+    try:
+        from scipy.io import loadmat
+    except ImportError as error:
+        raise InputError("reading MATLAB .mat files needs SciPy: pip install scipy") from error
+    return loadmat(path)
+
+
+def _relabel(groups: Tensor, background: int) -> Tensor:
+    """Motion groups (N,) -> 0 for the background group, 1, 2, ... for the others in order."""
+    objects = torch.unique(groups[groups != background])
+    labels = torch.zeros_like(groups)
+    for k, group in enumerate(objects.tolist(), start=1):
+        labels[groups == group] = k
+    return labels
 
 
 def read_hopkins155(folder: str | Path) -> MotionTracks:
@@ -200,24 +224,36 @@ def read_hopkins155(folder: str | Path) -> MotionTracks:
 
     Uses the pixel tracks ``y`` (not ``x``, which is normalized by a matrix that is not the
     camera's K). Groups are relabelled so that 0 is the background (see
-    :data:`HOPKINS_BACKGROUND_GROUP`); for another sequence the largest group is taken.
+    :data:`HOPKINS_BACKGROUND_GROUP`); for another sequence the highest label is taken, as the
+    database's convention for a moving camera (``hopkins155_dev/PROVENANCE.md``).
     """
     folder = Path(folder)
     path = folder / f"{folder.name}_truth.mat"
     if not path.is_file():
         raise InputError(f"no Hopkins155 ground truth {path}")
-    try:
-        from scipy.io import loadmat
-    except ImportError as error:
-        raise InputError("reading Hopkins155 .mat files needs SciPy: pip install scipy") from error
-    mat = loadmat(path)
+    mat = _load_mat(path)
     y = torch.from_numpy(mat["y"].astype("float64"))  # (3, N, F) homogeneous pixels
     tracks = (y[:2] / y[2:]).permute(2, 1, 0).contiguous()
     groups = torch.from_numpy(mat["s"].astype("int64")).flatten()
-    background = HOPKINS_BACKGROUND_GROUP.get(folder.name, int(torch.bincount(groups).argmax()))
-    objects = torch.unique(groups[groups != background])
-    labels = torch.zeros_like(groups)
-    for k, group in enumerate(objects.tolist(), start=1):
-        labels[groups == group] = k
+    labels = _relabel(groups, HOPKINS_BACKGROUND_GROUP.get(folder.name, int(groups.max())))
     return MotionTracks(name=folder.name, tracks=tracks, labels=labels,
                         image_size=(int(mat["width"].item()), int(mat["height"].item())))
+
+
+def read_kt3dmoseg(folder: str | Path) -> MotionTracks:
+    """A KT3DMoSeg clip folder ``<clip>_Tracks/<clip>_Tracks.mat`` (needs SciPy): the labelled
+    tracks ``ySparse`` with their visibility; the largest motion group is the background
+    (``kt3dmoseg_dev/PROVENANCE.md``). KITTI images are about 1242×375."""
+    folder = Path(folder)
+    path = folder / f"{folder.name}.mat"
+    if not path.is_file():
+        raise InputError(f"no KT3DMoSeg tracks {path}")
+    data = _load_mat(path)["Data"][0, 0]
+    y = torch.from_numpy(data["ySparse"].astype("float64"))  # (3, N, F)
+    visible = torch.from_numpy(data["visibleSparse"].astype(bool)).T.contiguous()  # (F, N)
+    tracks = (y[:2] / torch.where(y[2:] != 0, y[2:], 1.0)).permute(2, 1, 0)
+    tracks = torch.where(visible[..., None], tracks, 0.0).contiguous()
+    groups = torch.from_numpy(data["GtLabel"].astype("int64")).flatten()
+    labels = _relabel(groups, int(torch.bincount(groups).argmax()))
+    return MotionTracks(name=folder.name.removesuffix("_Tracks"), tracks=tracks, labels=labels, image_size=(1242, 375),
+                        visible=visible)

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import Config, MovingObjectsConfig
-from torchsfm.errors import NotEnoughDataError, ShapeError
+from torchsfm.errors import NotEnoughDataError
 from torchsfm.moving.parallax import PlaneParallax, plane_parallax
 from torchsfm.moving.rigidity import rigidity_residuals
 from torchsfm.sfm.two_view_geometry import estimate_fundamental
@@ -239,50 +239,3 @@ def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Genera
             fallback = f"IMOR kept only {int(background.sum())} of {N} vectors"
             background = torch.ones(N, dtype=torch.bool)
     return _Outcome(decomposition, background, votes, seed, supports, planar, fallback)
-
-
-@dataclass
-class TrackRejection:
-    """Result of :func:`reject_moving_objects_in_tracks` for N tracks over F frames.
-
-    Fields:
-        background_mask: (N,) bool, rejected by fewer than ``min_rejection_share`` of the
-            triplets (tracks no triplet could test are kept).
-        rejection_share: (N,) share of the triplets that rejected each track.
-        triplets: the frame triplets (a, b, c) used, b the reference.
-        results: one :class:`MovingObjectRejection` per triplet.
-    """
-
-    background_mask: Tensor
-    rejection_share: Tensor
-    triplets: list[tuple[int, int, int]]
-    results: list[MovingObjectRejection]
-
-
-def reject_moving_objects_in_tracks(tracks: Tensor, *, triplets: list[tuple[int, int, int]] | None = None,
-                                    config: Config | None = None, generator: torch.Generator | None = None) -> TrackRejection:
-    """IMOR + RANSAC over several frame triplets of N tracks, combined by vote (ours).
-
-    One triplet sees only what changes between its three frames; an object moving at constant
-    velocity over them is invisible to the rigidity constraint (see
-    :func:`torchsfm.testing.synthetic_moving_scene`). Votes over triplets of different spans
-    catch what a single triplet misses.
-
-    Args:
-        tracks: (F, N, 2) pixels of N points tracked in all F >= 3 frames.
-        triplets: frame triplets to test (default: (0, k, 2k) for every k up to (F - 1) / 2).
-        config, generator: as for :func:`reject_moving_objects`.
-    """
-    config = config or Config()
-    if not isinstance(tracks, Tensor) or tracks.dim() != 3:
-        raise ShapeError(f"tracks must be an (F, N, 2) tensor, got {tuple(tracks.shape) if isinstance(tracks, Tensor) else type(tracks).__name__}")
-    frames = check_frames(*tracks.unbind(0))
-    F = frames.shape[0]
-    triplets = triplets or [(0, k, 2 * k) for k in range(1, (F - 1) // 2 + 1)]
-    for triplet in triplets:
-        if len(triplet) != 3 or len(set(triplet)) != 3 or not all(0 <= f < F for f in triplet):
-            raise ShapeError(f"triplet {triplet} must name three distinct frames of 0..{F - 1}")
-    results = [reject_moving_objects(*frames[list(triplet)], config=config, generator=generator) for triplet in triplets]
-    rejected = torch.stack([~result.background_mask for result in results]).double().mean(0)
-    return TrackRejection(background_mask=rejected < config.moving_objects.min_rejection_share, rejection_share=rejected,
-                          triplets=list(triplets), results=results)

@@ -10,6 +10,7 @@ from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, samp
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
+from torchsfm.geometry.projective import projective_resection, reprojection_squared
 from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
 
 
@@ -222,3 +223,31 @@ class JointModel:
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., :2]
+
+
+class ProjectiveResectionModel:
+    """A projective camera from homogeneous-point↔image pairs; data rows ``(X1..X4, x, y)``
+    (D = 6), all in normalized coordinates.
+
+    Minimal solver: the 6-point DLT (:func:`torchsfm.geometry.projective.projective_resection`);
+    non-minimal: the same on weighted pairs. Residual: the squared reprojection error divided by
+    ``scale²`` (pixels² when ``scale`` is the normalization's pixels-to-normalized factor).
+    """
+
+    sample_size = 6
+
+    def __init__(self, scale: float = 1.0) -> None:
+        self.scale = scale
+
+    def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        P = projective_resection(samples[..., :4], samples[..., 4:])
+        return P, torch.isfinite(P).flatten(-2).all(-1)
+
+    def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
+        return projective_resection(data[..., :4], data[..., 4:], weights)
+
+    def residuals(self, models: Tensor, data: Tensor) -> Tensor:
+        return reprojection_squared(models, data[:, None, :, :4], data[:, None, :, 4:]) / self.scale**2
+
+    def sampling_coordinates(self, data: Tensor) -> Tensor:
+        return data[..., 4:]

@@ -138,6 +138,7 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
         "observations": int(model.observation_points.numel()),
         "mean_track_length": model.observation_points.numel() / max(model.num_points, 1),
         "reprojection_rms_px": model.reprojection_rms(),
+        "K": model.cameras.K[0].tolist() if model.num_views else None,
         "seconds": {**model.timings, "total": seconds},
         "moving_objects": moving_objects_summary(model),
         "cameras": [{"image": name, "R": model.cameras.R[v].tolist(), "t": model.cameras.t[v].tolist()}
@@ -146,10 +147,11 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
     }
 
 
-def reconstruct_sequence(inputs: list[str | Path], K: Tensor, out: str | Path, *, distortion: Tensor | None = None,
+def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | Path, *, distortion: Tensor | None = None,
                          config: Config | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
-    """Reconstruct images (files or folders) with intrinsics K (and radial distortion); write
-    VRML, PLY, COLMAP text and a JSON summary into ``out``. Returns the summary."""
+    """Reconstruct images (files or folders) with intrinsics K (and radial distortion; K None:
+    estimated, see :func:`torchsfm.reconstruct`); write VRML, PLY, COLMAP text and a JSON summary
+    into ``out``. Returns the summary (``K``: the intrinsics used)."""
     config = config or Config()
     start = time.perf_counter()
     paths = image_paths(inputs)

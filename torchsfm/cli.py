@@ -72,9 +72,12 @@ def _reconstruct(args: argparse.Namespace) -> None:
     from torchsfm.calibration.files import read_camera
 
     config = _config(args)
-    K, distortion = read_camera(args.K)
+    K, distortion = read_camera(args.K) if args.K is not None else (None, None)
     summary = reconstruct_sequence(args.images, K, args.out, distortion=distortion, config=config, seed=args.seed,
                                    progress=_progress(args.quiet))
+    if args.K is None:
+        K = summary["K"]
+        print(f"estimated intrinsics: f {K[0][0]:.1f} px, principal point ({K[0][2]:.1f}, {K[1][2]:.1f})")
     print(f"{summary['views_registered']} views registered, {summary['points']} points, mean track length "
           f"{summary['mean_track_length']:.2f}, reprojection RMS {summary['reprojection_rms_px']:.3f} px, "
           f"{summary['seconds']['total']:.1f} s")
@@ -102,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     sequence = commands.add_parser("reconstruct", help="reconstruct a calibrated image sequence")
     sequence.add_argument("images", nargs="+", type=Path, help="image files and/or folders of images, in sequence order")
-    _job_options(sequence)
+    _job_options(sequence, K_required=False)
     sequence.set_defaults(run=_reconstruct)
 
     calibrate = commands.add_parser("calibrate", help="calibrate a camera from chessboard photos (Zhang's method)")
@@ -139,10 +142,11 @@ def _calibrate(args: argparse.Namespace) -> None:
     print(f"wrote {args.out} and the detected corners in {summary['corners_folder']}/")
 
 
-def _job_options(parser: argparse.ArgumentParser) -> None:
+def _job_options(parser: argparse.ArgumentParser, *, K_required: bool = True) -> None:
     """The options every reconstruction command takes."""
-    parser.add_argument("--K", required=True, type=Path,
-                        help="camera file: 3x3 K as text (optionally a 4th row 'k1 k2'), or a calib.yaml from 'torchsfm calibrate'")
+    parser.add_argument("--K", required=K_required, type=Path,
+                        help="camera file: 3x3 K as text (optionally a 4th row 'k1 k2'), or a calib.yaml from 'torchsfm calibrate'"
+                        + ("" if K_required else "; without it the focal length and principal point are estimated"))
     parser.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
     parser.add_argument("--out", required=True, type=Path, help="output folder")

@@ -290,11 +290,52 @@ class TwoViewConfig:
 
 
 @dataclass(frozen=True)
+class PairsConfig:
+    """Which view pairs are matched, and the coarse matching that guides them
+    (:mod:`torchsfm.sfm.pairs`).
+
+    ``mode``: ``auto`` (every pair up to ``exhaustive_up_to`` views, else ``similarity``),
+    ``sequential`` (pairs (i, i + d), d = 1 .. ``window``: video), ``exhaustive``, or
+    ``similarity`` (the sequential window plus each view's ``neighbours`` best partners by the
+    coarse score, if it reaches ``min_score``). Coarse matching: images reduced to about
+    ``coarse_size`` px on the long side, ``coarse_corners`` Harris corners, NCC on
+    (2 ``patch_half_size`` + 1)² patches, mutual best above ``ncc_threshold``. ``guided``: a
+    homography fitted to the coarse matches (``homography_threshold`` px, at least ``min_score``
+    inliers) centres the full-resolution search disc of every corner on its predicted position.
+    """
+
+    mode: str = "auto"
+    window: int = 2
+    exhaustive_up_to: int = 20
+    neighbours: int = 5
+    min_score: int = 12
+    coarse_size: int = 320
+    coarse_corners: int = 300
+    patch_half_size: int = 4
+    ncc_threshold: float = 0.8
+    homography_threshold: float = 8.0
+    guided: bool = True
+
+    def __post_init__(self) -> None:
+        _require(self.mode in ("auto", "sequential", "exhaustive", "similarity"), "mode", self.mode,
+                 "one of auto, sequential, exhaustive, similarity")
+        _require(self.window >= 1, "window", self.window, "must be >= 1")
+        _require(self.exhaustive_up_to >= 2, "exhaustive_up_to", self.exhaustive_up_to, "must be >= 2")
+        _require(self.neighbours >= 0, "neighbours", self.neighbours, "must be >= 0")
+        _require(self.min_score >= 4, "min_score", self.min_score, "must be >= 4")
+        _require(self.coarse_size >= 64, "coarse_size", self.coarse_size, "must be >= 64")
+        _require(self.coarse_corners >= 8, "coarse_corners", self.coarse_corners, "must be >= 8")
+        _require(self.patch_half_size >= 1, "patch_half_size", self.patch_half_size, "must be >= 1")
+        _require(-1 <= self.ncc_threshold < 1, "ncc_threshold", self.ncc_threshold, "must lie in [-1, 1)")
+        _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")
+
+
+@dataclass(frozen=True)
 class ReconstructionConfig:
     """Incremental reconstruction of a sequence (thesis chapter 4).
 
-    Views i and i+1 are matched, and with ``match_skip`` also i and i+2; a pair's matches are
-    kept if the robust F keeps at least ``min_pair_inliers``. The initial pair is the one with
+    The view pairs chosen by ``pairs`` are matched; a pair's matches are kept if the robust F
+    keeps at least ``min_pair_inliers``. The initial pair is the one with
     most inliers among those whose homography explains at most ``max_homography_ratio`` of the F
     inliers (``homography_threshold`` px) and whose inliers triangulate with a median angle of at
     least ``min_initial_angle`` degrees. Each next view is resected from its tracks' 3-D points
@@ -304,7 +345,6 @@ class ReconstructionConfig:
     Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end.
     """
 
-    match_skip: bool = True
     min_pair_inliers: int = 30
     homography_threshold: float = 3.0
     max_homography_ratio: float = 0.8
@@ -488,6 +528,7 @@ class Config:
     two_view: TwoViewConfig = field(default_factory=TwoViewConfig)
     bundle_adjustment: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
     resection: ResectionConfig = field(default_factory=ResectionConfig)
+    pairs: PairsConfig = field(default_factory=PairsConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
     moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)

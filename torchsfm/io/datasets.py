@@ -112,12 +112,8 @@ class StrechaSequence:
         return R_relative, t_relative / t_relative.norm()
 
 
-def read_strecha(folder: str | Path) -> StrechaSequence:
-    """Read ``NNNN.jpg`` + ``NNNN.txt`` pairs (K, R, t as 7 rows of 3 numbers, '#' comments)."""
-    folder = Path(folder)
-    cameras = sorted(folder.glob("[0-9]*.txt"))
-    if not cameras:
-        raise InputError(f"{folder} holds no Strecha camera files (NNNN.txt)")
+def _camera_tables(cameras: list[Path]) -> Tensor:
+    """(V, 7, 3) K, R, t tables of Strecha-layout camera files (7 rows of 3 numbers, '#' comments)."""
     tables = []
     for path in cameras:
         lines = [line for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
@@ -128,12 +124,34 @@ def read_strecha(folder: str | Path) -> StrechaSequence:
         if table.shape != (7, 3):
             raise InputError(f"camera file {path} must hold 7 rows of 3 numbers (K, R, t), got {tuple(table.shape)}")
         tables.append(table)
-    tables = torch.stack(tables)
-    images = [path.with_suffix(".jpg") for path in cameras]
+    return torch.stack(tables)
+
+
+def _sequence(images: list[Path], cameras: list[Path]) -> StrechaSequence:
     missing = [str(path) for path in images if not path.exists()]
     if missing:
         raise InputError(f"missing images for camera files: {', '.join(missing)}")
+    tables = _camera_tables(cameras)
     return StrechaSequence(images=images, K=tables[:, :3], R=tables[:, 3:6], t=tables[:, 6])
+
+
+def read_strecha(folder: str | Path) -> StrechaSequence:
+    """Read ``NNNN.jpg`` + ``NNNN.txt`` pairs (K, R, t as 7 rows of 3 numbers, '#' comments)."""
+    folder = Path(folder)
+    cameras = sorted(folder.glob("[0-9]*.txt"))
+    if not cameras:
+        raise InputError(f"{folder} holds no Strecha camera files (NNNN.txt)")
+    return _sequence([path.with_suffix(".jpg") for path in cameras], cameras)
+
+
+def read_kitti_odometry(folder: str | Path) -> StrechaSequence:
+    """A KITTI odometry excerpt laid out as ``image_0/NNNNNN.png`` + ``cameras/NNNNNN.txt`` (the
+    Strecha layout, camera from world; ``kitti_odom_seq06_000-050/PROVENANCE.md``)."""
+    folder = Path(folder)
+    cameras = sorted((folder / "cameras").glob("[0-9]*.txt"))
+    if not cameras:
+        raise InputError(f"{folder}/cameras holds no camera files (NNNNNN.txt)")
+    return _sequence([folder / "image_0" / path.with_suffix(".png").name for path in cameras], cameras)
 
 
 @dataclass

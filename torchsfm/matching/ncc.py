@@ -57,13 +57,15 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int) -> Tensor:
 
 
 def ncc_candidates(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor,
-                   config: MatchingConfig | None = None) -> CandidateMatches:
+                   config: MatchingConfig | None = None, predicted1: Tensor | None = None) -> CandidateMatches:
     """All pairs within the search disc whose NCC exceeds the threshold (Alg. 3.2.2 step 1).
 
     Args:
         image1, image2: (1, H, W) grey images.
         points1, points2: (N1, 2), (N2, 2) corner positions (pixels).
         config: patch size, search radius, score threshold.
+        predicted1: (N1, 2) where the corners of image 1 are expected in image 2 (the disc's
+            centres; default: their own positions).
 
     Returns:
         :class:`CandidateMatches`.
@@ -72,7 +74,8 @@ def ncc_candidates(image1: Tensor, image2: Tensor, points1: Tensor, points2: Ten
     patches1 = extract_patches(image1, points1, config.patch_half_size)
     patches2 = extract_patches(image2, points2, config.patch_half_size)
     ncc = patches1 @ patches2.T  # (N1, N2): eq. 3.2.4 (the (2n+1)² σσ normalization is in the unit norms)
-    inside = torch.cdist(points1, points2) < config.search_radius
+    centres = points1 if predicted1 is None else predicted1.to(points1.dtype)
+    inside = torch.cdist(centres, points2) < config.search_radius
     ncc = torch.where(inside, ncc, float("-inf"))
     index1, index2 = torch.nonzero(ncc > config.ncc_threshold, as_tuple=True)
     return CandidateMatches(index1=index1, index2=index2, score=ncc[index1, index2], ncc=ncc)

@@ -1,15 +1,18 @@
 """Incremental reconstruction of a calibrated sequence (thesis chapter 4, Fig. 4.1–4.2).
 
-Corners of every view (one batched Harris call) → putative matches of views (i, i+1) and
-(i, i+2), verified by a robust F → tracks → an initial pair (enough inliers, not explained by a
+Corners of every view (one batched Harris call) → the view pairs worth matching (coarse matching
+of every pair, :mod:`torchsfm.sfm.pairs`) → putative matches guided by the coarse homography,
+verified by a robust F → tracks → an initial pair (enough inliers, not explained by a
 homography, enough parallax) reconstructed by the two-view geometry → repeatedly: the view that
-sees most reconstructed tracks is resected (RANSAC + LM) and its new tracks triangulated →
+sees most reconstructed tracks is resected (RANSAC + LM) and its new tracks triangulated (a view
+that fails is retried after the next registration) →
 sparse bundle adjustment (optionally every k views, always at the end) → outlier observations
 removed and the model adjusted once more.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -18,10 +21,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, check_intrinsics, project, projection_matrix, undistort_points
+from torchsfm.camera import (Camera, check_intrinsics, from_homogeneous, project, projection_matrix, to_homogeneous,
+                             undistort_points)
 from torchsfm.config import Config, RansacConfig
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError, TorchSfmError
 from torchsfm.features.harris import detect_corners
+from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.io.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
@@ -30,12 +35,17 @@ from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
 from torchsfm.sfm.absolute_pose import estimate_absolute_pose
+from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
 from torchsfm.sfm.reconstruction import Reconstruction
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
-from torchsfm.validation import check_finite, check_shapes
+from torchsfm.validation import check_finite
 
 Progress = Callable[[str], None]
+FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a common camera's field of view)
+FOCAL_REFINEMENT_RANGE = 1.1  # the bundle-adjusted profile searches f / 1.1 .. f × 1.1
+PRINCIPAL_POINT_RANGE = 0.02  # ... and the principal point ± 2% of the image's larger side
+INTRINSICS_REFINEMENT_STEPS = 10
 
 
 @dataclass
@@ -43,6 +53,7 @@ class _PairMatches:
     index1: Tensor
     index2: Tensor
     homography_ratio: float
+    F: Tensor
 
 
 def _triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
@@ -133,14 +144,22 @@ class _Model:
 
 def _match_pairs(greys: Tensor, raw: list[Tensor], corners: list[Tensor], config: Config, generator: torch.Generator,
                  report: Progress) -> dict[tuple[int, int], _PairMatches]:
-    """Verified matches of (i, i+1) and, with ``match_skip``, (i, i+2): the images are matched at
-    the detected (``raw``) corners, the geometry uses the undistorted ``corners``."""
-    V = len(corners)
-    pairs = [(i, i + 1) for i in range(V - 1)] + ([(i, i + 2) for i in range(V - 2)] if config.reconstruction.match_skip else [])
+    """Verified matches of the view pairs chosen by ``config.pairs`` (:mod:`torchsfm.sfm.pairs`):
+    the images are matched at the detected (``raw``) corners, with the search disc centred on the
+    coarse homography's prediction where it moves corners by more than a quarter of the disc;
+    the geometry uses the undistorted ``corners``."""
+    features = coarse_features(greys, config.pairs)
+    pairs = select_pairs(pair_scores(features, config.pairs.ncc_threshold), config.pairs)
     result = {}
     for i, j in pairs:
         report(f"matching views {i} and {j}")
-        matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching)
+        predicted = None
+        H = predicted_homography(features, i, j, config.pairs, generator) if config.pairs.guided else None
+        if H is not None:
+            moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
+            if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
+                predicted = moved
+        matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching, predicted)
         x1, x2 = corners[i][matches.index1], corners[j][matches.index2]
         if x1.shape[0] < config.reconstruction.min_pair_inliers:
             continue
@@ -155,7 +174,7 @@ def _match_pairs(greys: Tensor, raw: list[Tensor], corners: list[Tensor], config
         homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
         homography = ransac(HomographyModel(data), data, homography_config, generator=generator)
         ratio = float(homography.inlier_mask.sum()) / float(inliers.sum())
-        result[(i, j)] = _PairMatches(matches.index1[inliers], matches.index2[inliers], ratio)
+        result[(i, j)] = _PairMatches(matches.index1[inliers], matches.index2[inliers], ratio, fundamental.F)
     return result
 
 
@@ -183,10 +202,11 @@ def _initial_pair(pairs: dict[tuple[int, int], _PairMatches], corners: list[Tens
     raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
 
 
-def _bundle(model: _Model, config: Config, fixed_view: int) -> None:
-    """Adjust the registered cameras and the points with their inlier observations, in place."""
-    errors = model.observation_errors()
-    usable = errors < config.reconstruction.max_reprojection_error
+def _bundle(model: _Model, config: Config, fixed_view: int, usable: Tensor | None = None) -> float:
+    """Adjust the registered cameras and the points with their inlier observations (or the
+    ``usable`` (T,) ones), in place; returns the final cost ½ Σ ‖r‖² (px²) per observation."""
+    if usable is None:
+        usable = model.observation_errors() < config.reconstruction.max_reprojection_error
     views = torch.nonzero(model.registered).flatten()
     tracks = torch.nonzero(model.has_point).flatten()
     camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
@@ -199,11 +219,72 @@ def _bundle(model: _Model, config: Config, fixed_view: int) -> None:
         point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
         fixed_cameras=views == fixed_view,
     )
-    adjusted = bundle_adjust(problem, config=config.bundle_adjustment).problem
+    result = bundle_adjust(problem, config=config.bundle_adjustment)
+    adjusted = result.problem
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
+    return result.final_cost / max(int(usable.sum()), 1)
 
 
-def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Tensor | None = None,
+def _self_calibrate(pairs: dict[tuple[int, int], _PairMatches], size: tuple[int, int], config: Config) -> Tensor:
+    """K (3, 3) with the principal point at the image centre and the focal length that makes the
+    verified pairs' essential matrices best (pairs a homography explains are left out when
+    others exist: their F does not fix the focal length)."""
+    if not pairs:
+        raise DegenerateConfigurationError("no view pair could be verified, so the focal length cannot be estimated: give K")
+    H, W = size
+    centre = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
+    general = [m.F for m in pairs.values() if m.homography_ratio <= config.reconstruction.max_homography_ratio]
+    F = torch.stack(general or [m.F for m in pairs.values()]).double()
+    return intrinsics(focal_from_fundamentals(F, centre, FOCAL_PRIOR * max(H, W)), centre)
+
+
+def _refine_intrinsics(model: _Model, config: Config, fixed_view: int) -> None:
+    """The shared focal length and principal point minimizing the bundle-adjusted reprojection
+    cost: golden-section profiles over log f (± ``FOCAL_REFINEMENT_RANGE``), then cx and cy
+    (± ``PRINCIPAL_POINT_RANGE`` of the image size), then f again, every evaluation a bundle
+    adjustment from the current model over one fixed set of observations; the model ends
+    adjusted at the best values."""
+    start = (model.R.clone(), model.t.clone(), model.points.clone())
+    usable = model.observation_errors() < config.reconstruction.max_reprojection_error  # one set for every K
+    size = 2 * float(model.K[0, :2, 2].max()) + 1
+
+    def cost(K: Tensor) -> float:
+        model.R, model.t, model.points = (tensor.clone() for tensor in start)
+        model.K = K.expand_as(model.K).clone()
+        return _bundle(model, config, fixed_view, usable)
+
+    def with_value(K: Tensor, which: str, value: float) -> Tensor:
+        K = K.clone()
+        if which == "f":
+            K[0, 0] = K[1, 1] = math.exp(value)
+        else:
+            K[0 if which == "cx" else 1, 2] = value
+        return K
+
+    K = model.K[0].clone()
+    for which in ("f", "cx", "cy", "f"):
+        if which == "f":
+            centre, half = math.log(float(K[0, 0])), math.log(FOCAL_REFINEMENT_RANGE)
+        else:
+            centre, half = float(K[0 if which == "cx" else 1, 2]), PRINCIPAL_POINT_RANGE * size
+        low, high = centre - half, centre + half
+        ratio = (math.sqrt(5) - 1) / 2
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        cost_a, cost_b = cost(with_value(K, which, a)), cost(with_value(K, which, b))
+        for _ in range(INTRINSICS_REFINEMENT_STEPS):
+            if cost_a < cost_b:
+                high, b, cost_b = b, a, cost_a
+                a = high - ratio * (high - low)
+                cost_a = cost(with_value(K, which, a))
+            else:
+                low, a, cost_a = a, b, cost_b
+                b = low + ratio * (high - low)
+                cost_b = cost(with_value(K, which, b))
+        K = with_value(K, which, (low + high) / 2)
+    cost(K)
+
+
+def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, distortion: Tensor | None = None,
                 names: list[str] | None = None, config: Config | None = None,
                 generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
     """Reconstruct a calibrated image sequence.
@@ -214,7 +295,11 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Ten
     Args:
         images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1],
             all the same size.
-        K: intrinsics (3, 3) shared by all views, or (V, 3, 3).
+        K: intrinsics (3, 3) shared by all views, or (V, 3, 3); None: unknown — the principal
+            point is taken at the image centre, the focal length (shared by all views) is
+            estimated from the verified pairs' fundamental matrices (Mendonça & Cipolla, searched
+            around 1.2 × the larger image side) and refined by bundle adjustment; the estimate is
+            the model's ``cameras.K``. All images must then have one size.
         distortion: radial (k1, k2) of the camera, (2,) or (V, 2); corners are undistorted
             before any geometry (the model's keypoints are then ideal pixels).
         names: view names (default: the file names, or ``view0``, ``view1``, ...).
@@ -229,14 +314,19 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Ten
     if len(images) < 2:
         raise NotEnoughDataError(f"a reconstruction needs at least 2 images, got {len(images)}")
     names = names or [Path(image).name if isinstance(image, (str, Path)) else f"view{v}" for v, image in enumerate(images)]
+    estimate_focal = K is None
+    if estimate_focal:
+        if distortion is not None:
+            raise InputError("distortion needs K: give both, or neither")
+        K = torch.eye(3, dtype=torch.float64)  # replaced once the image size is known
     K = K.double()
     K = K.expand(len(images), 3, 3) if K.dim() == 2 else K
     if K.shape != (len(images), 3, 3):
         raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
     check_intrinsics(K=K)
     if distortion is not None:
-        check_shapes(distortion=(distortion, "* 2"))
-        if distortion.dim() == 2 and distortion.shape[0] != len(images):
+        distortion = distortion.double()
+        if distortion.shape not in ((2,), (len(images), 2)):
             raise ShapeError(f"distortion must be (2,) or ({len(images)}, 2), got {tuple(distortion.shape)}")
     distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
     check_finite(distortion=distortion)
@@ -253,7 +343,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Ten
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
     model = _reconstruct_views(loaded, K[kept], distortion[kept], names=[names[v] for v in kept], config=config,
-                               generator=generator, progress=progress)
+                               generator=generator, progress=progress, estimate_focal=estimate_focal)
     model.view_indices = [kept[v] for v in model.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
@@ -261,8 +351,10 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor, *, distortion: Ten
 
 
 def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, names: list[str], config: Config | None = None,
-                       generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
-    """:func:`reconstruct` on decoded images, with K (V, 3, 3), distortion (V, 2) and names given."""
+                       generator: torch.Generator | None = None, progress: Progress | None = None,
+                       estimate_focal: bool = False) -> Reconstruction:
+    """:func:`reconstruct` on decoded images, with K (V, 3, 3), distortion (V, 2) and names given
+    (with ``estimate_focal``, K is replaced by the self-calibrated one)."""
     config = config or Config()
     generator = generator or torch.Generator().manual_seed(0)
     report = progress or (lambda message: None)
@@ -284,6 +376,9 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
     raw = [detected.of_image(v) for v in range(V)]
     corners = [undistort_points(raw[v].double(), K[v], distortion[v]) for v in range(V)]
     pairs = timed("matching", lambda: _match_pairs(greys, raw, corners, config, generator, report))
+    if estimate_focal:
+        K = timed("self-calibration", lambda: _self_calibrate(pairs, images[0].shape[-2:], config)).expand(V, 3, 3)
+        report(f"focal length estimated from {len(pairs)} verified pairs: {float(K[0, 0, 0]):.1f} px")
     tracks = build_tracks([c.shape[0] for c in corners], {key: (m.index1, m.index2) for key, m in pairs.items()})
     report(f"{tracks.num_tracks} tracks from {len(pairs)} verified pairs")
     rejections = {}
@@ -296,7 +391,7 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
     model.registered[[first, second]] = True
     model.triangulate_new(second)
     report(f"initial pair {first}-{second}: {int(model.has_point.sum())} points")
-    unregistered: dict[int, str] = {}
+    unregistered: dict[int, str] = {}  # views that failed since the last registration: retried after the next one
     since_bundle = 0
     while True:
         waiting = [v for v in range(V) if not model.registered[v] and v not in unregistered]
@@ -321,6 +416,7 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
             continue
         model.R[view], model.t[view] = pose.R, pose.t
         model.registered[view] = True
+        unregistered.clear()  # more points now: every view that failed gets another try
         timed("triangulation", lambda: model.triangulate_new(view))
         since_bundle += 1
         if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
@@ -333,6 +429,9 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
     inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
     model.has_point &= inlier_count >= config.reconstruction.min_track_views
     timed("bundle adjustment", lambda: _bundle(model, config, first))
+    if estimate_focal:
+        timed("intrinsics refinement", lambda: _refine_intrinsics(model, config, first))
+        report(f"focal length refined by bundle adjustment: {float(model.K[0, 0, 0]):.1f} px")
     result = _result(model, images, names, unregistered, timings)
     result.moving_objects = rejections
     return result

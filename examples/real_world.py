@@ -1,0 +1,135 @@
+"""Real-world input: photo sets in any order, wide baselines, driving video, unknown focal length.
+
+Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
+shuffled order (a fixed seeded permutation) and with every third view only (wide baselines); the
+KITTI odometry 06 excerpt (51 frames, forward motion); and, where ``--no-K`` is given, the same
+without the intrinsics. For each: views registered, camera errors after a similarity alignment to
+the ground truth (centre error as a share of the path extent, rotation error; medians and
+maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
+and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping).
+
+    python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import torch
+
+import torchsfm
+from torchsfm.errors import TorchSfmError
+from torchsfm.evaluation import camera_errors
+from torchsfm.io.datasets import StrechaSequence, read_kitti_odometry, read_strecha
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
+    return StrechaSequence(images=[sequence.images[i] for i in order], K=sequence.K[order], R=sequence.R[order], t=sequence.t[order])
+
+
+def cases(data: Path) -> dict[str, StrechaSequence]:
+    fountain, herzjesu = read_strecha(data / "strecha_fountain_P11"), read_strecha(data / "strecha_herzjesu_P8")
+    shuffle = lambda n: torch.randperm(n, generator=torch.Generator().manual_seed(7)).tolist()  # noqa: E731
+    return {
+        "fountain": fountain,
+        "fountain_shuffled": subset(fountain, shuffle(11)),
+        "fountain_every3": subset(fountain, list(range(0, 11, 3))),
+        "herzjesu": herzjesu,
+        "herzjesu_shuffled": subset(herzjesu, shuffle(8)),
+        "herzjesu_every3": subset(herzjesu, list(range(0, 8, 3))),
+        "kitti06": read_kitti_odometry(data / "kitti_odom_seq06_000-050"),
+    }
+
+
+def errors_row(R: torch.Tensor, t: torch.Tensor, sequence: StrechaSequence, index: list[int]) -> str:
+    errors = camera_errors(R, t, sequence.R[index], sequence.t[index])
+    consecutive = [k for k in range(len(index) - 1) if index[k + 1] == index[k] + 1]
+    rel = errors.relative_rotation  # over all pairs (i < j); report the consecutive ones
+    pairs = torch.triu_indices(len(index), len(index), 1)
+    mask = torch.zeros(pairs.shape[1], dtype=torch.bool)
+    for k in consecutive:
+        mask |= (pairs[0] == k) & (pairs[1] == k + 1)
+    step = f"{float(rel[mask].median()):.3f}" if bool(mask.any()) else "-"
+    return (f"centre {100 * float(errors.centre.median()) / errors.extent:.3f}% (max {100 * float(errors.centre.max()) / errors.extent:.3f}%), "
+            f"rotation {float(errors.rotation.median()):.3f} deg (max {float(errors.rotation.max()):.3f}), consecutive rel. rot. {step} deg")
+
+
+def run_torchsfm(sequence: StrechaSequence, with_K: bool) -> str:
+    start = time.perf_counter()
+    try:
+        model = torchsfm.reconstruct(sequence.images, sequence.K if with_K else None, generator=torch.Generator().manual_seed(0))
+    except TorchSfmError as error:
+        return f"failed: {error} ({time.perf_counter() - start:.1f} s)"
+    seconds = time.perf_counter() - start
+    index = model.view_indices
+    focal = "" if with_K else f", focal {float(model.cameras.K[0, 0, 0]):.1f} (true {float(sequence.K[0, 0, 0]):.1f})"
+    return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}, {seconds:.1f} s"
+
+
+def run_pycolmap(sequence: StrechaSequence, workdir: Path) -> str:
+    os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's progress log
+    try:
+        import pycolmap
+    except ImportError:
+        return "pycolmap not installed"
+    import shutil
+
+    shutil.rmtree(workdir, ignore_errors=True)
+    images = workdir / "images"
+    images.mkdir(parents=True)
+    for k, path in enumerate(sequence.images):
+        shutil.copy(path, images / f"{k:04d}{path.suffix}")
+    K = sequence.K[0]
+    start = time.perf_counter()
+    database = workdir / "database.db"
+    options = pycolmap.ImageReaderOptions()
+    options.camera_model = "PINHOLE"
+    options.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=options)
+    pycolmap.match_exhaustive(database)
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.ba_refine_focal_length = False
+    mapping.ba_refine_principal_point = False
+    mapping.ba_refine_extra_params = False
+    models = pycolmap.incremental_mapping(database, images, workdir / "sparse", options=mapping)
+    seconds = time.perf_counter() - start
+    if not models:
+        return f"no model ({seconds:.1f} s)"
+    model = max(models.values(), key=lambda m: m.num_reg_images())
+    index, R, t = [], [], []
+    for image in model.images.values():
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        index.append(int(Path(image.name).stem))
+        R.append(torch.from_numpy(pose.rotation.matrix()))
+        t.append(torch.from_numpy(pose.translation))
+    order = sorted(range(len(index)), key=lambda k: index[k])
+    index = [index[k] for k in order]
+    R, t = torch.stack([R[k] for k in order]).double(), torch.stack([t[k] for k in order]).double()
+    return f"{len(index)}/{len(sequence.images)} views, {errors_row(R, t, sequence, index)}, {seconds:.1f} s"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--cases", default="")
+    parser.add_argument("--no-K", action="store_true", help="reconstruct without the intrinsics")
+    parser.add_argument("--no-colmap", action="store_true")
+    parser.add_argument("--work", type=Path, default=Path("outputs/real_world"))
+    args = parser.parse_args()
+    chosen = cases(args.data)
+    names = [name for name in args.cases.split(",") if name] or list(chosen)
+    for name in names:
+        sequence = chosen[name]
+        print(f"{name} ({len(sequence.images)} images)")
+        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K)}", flush=True)
+        if not args.no_colmap:
+            print(f"  pycolmap: {run_pycolmap(sequence, args.work / name)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

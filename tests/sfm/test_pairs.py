@@ -1,0 +1,56 @@
+"""Pair selection and coarse guidance (sfm/pairs.py)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchsfm.config import PairsConfig
+from torchsfm.io.images import read_image, to_grey
+from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
+from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
+
+
+def _bundled_greys() -> torch.Tensor:
+    return torch.stack([to_grey(read_image(BUNDLED_FOUNTAIN / f"000{v}.jpg")) for v in (4, 5, 6)])
+
+
+def test_pair_modes():
+    scores = torch.tensor([[0, 50, 0, 40], [50, 0, 30, 0], [0, 30, 0, 20], [40, 0, 20, 0]])
+    assert select_pairs(scores, PairsConfig(mode="sequential", window=2)) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    assert len(select_pairs(scores, PairsConfig(mode="exhaustive"))) == 6
+    assert len(select_pairs(scores, PairsConfig(mode="auto", exhaustive_up_to=4))) == 6
+    # similarity: window 1 plus each view's best partner (0-3 is far apart in the file order)
+    assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=12)) == [(0, 1), (0, 3), (1, 2), (2, 3)]
+
+
+def test_related_views_score_higher_than_an_unrelated_one():
+    """Three fountain views and a noise image: every fountain pair scores more coarse matches
+    than any pair with the noise image."""
+    greys = _bundled_greys()
+    noise = torch.rand(1, *greys.shape[1:], generator=torch.Generator().manual_seed(0)).to(greys.dtype)
+    scores = pair_scores(coarse_features(torch.cat([greys, noise]), PairsConfig()), 0.8)
+    related = scores[:3, :3][~torch.eye(3, dtype=torch.bool)]
+    assert int(related.min()) > int(scores[3, :3].max())
+    assert torch.equal(scores, scores.T)
+
+
+def test_predicted_homography_follows_a_large_shift():
+    """The second view shifted by (120, -40) px: the coarse homography predicts the shift within
+    2 px over the image."""
+    grey = _bundled_greys()[0]
+    shifted = torch.roll(grey, shifts=(-40, 120), dims=(-2, -1))
+    features = coarse_features(torch.stack([grey, shifted]), PairsConfig())
+    H = predicted_homography(features, 0, 1, PairsConfig(), torch.Generator().manual_seed(0))
+    assert H is not None
+    points = torch.tensor([[200.0, 200.0, 1.0], [500.0, 300.0, 1.0], [300.0, 400.0, 1.0]], dtype=torch.float64)
+    moved = points @ H.T
+    torch.testing.assert_close(moved[:, :2] / moved[:, 2:] - points[:, :2],
+                               torch.tensor([[120.0, -40.0]], dtype=torch.float64).expand(3, 2), atol=2.0, rtol=0)
+
+
+def test_bad_mode_is_named():
+    from torchsfm.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="mode"):
+        PairsConfig(mode="random")

@@ -1,0 +1,56 @@
+"""Focal length from fundamental matrices (self-calibration with a known principal point).
+
+For a camera with intrinsics K = [[f, 0, cx], [0, f, cy], [0, 0, 1]] shared by two views, the
+essential matrix E = Kᵀ F K has two equal non-zero singular values. Mendonça & Cipolla (1999):
+the focal length is the f that makes the normalized gap (σ1 − σ2) / (σ1 + σ2) smallest, summed
+over many view pairs (robustly: the median over pairs). A 1-D search over log f (a coarse grid,
+then golden-section refinement) needs no derivative and no starting point beyond a range.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+
+def intrinsics(focal: float | Tensor, principal_point: Tensor) -> Tensor:
+    """K (3, 3) of square pixels, zero skew: focal (px), principal point (2,)."""
+    K = torch.eye(3, dtype=torch.float64, device=principal_point.device)
+    K[0, 0] = K[1, 1] = float(focal)
+    K[:2, 2] = principal_point.double()
+    return K
+
+
+def singular_value_gap(F: Tensor, focal: Tensor, principal_point: Tensor) -> Tensor:
+    """(σ1 − σ2) / (σ1 + σ2) of E = Kᵀ F K for P pairs F (P, 3, 3) and G candidate focal lengths
+    (G,): (G, P)."""
+    K = torch.zeros(focal.shape[0], 3, 3, dtype=torch.float64, device=F.device)
+    K[:, 0, 0] = K[:, 1, 1] = focal.double()
+    K[:, :2, 2] = principal_point.double()
+    K[:, 2, 2] = 1
+    E = K[:, None].transpose(-1, -2) @ F.double()[None] @ K[:, None]  # (G, P, 3, 3)
+    sigma = torch.linalg.svdvals(E)
+    return (sigma[..., 0] - sigma[..., 1]) / (sigma[..., 0] + sigma[..., 1]).clamp_min(1e-300)
+
+
+def focal_from_fundamentals(F: Tensor, principal_point: Tensor, prior: float, *, spread: float = 4.0,
+                            steps: int = 64, refinements: int = 30) -> float:
+    """The focal length (px) minimizing the median singular-value gap over the pairs F (P, 3, 3),
+    searched in [prior / spread, prior × spread] (log grid of ``steps``, then golden section)."""
+    def cost(focal: Tensor) -> Tensor:
+        return singular_value_gap(F, focal, principal_point).median(dim=1).values
+
+    grid = prior * torch.logspace(-math.log10(spread), math.log10(spread), steps, dtype=torch.float64)
+    best = int(cost(grid).argmin())
+    low, high = math.log(float(grid[max(best - 1, 0)])), math.log(float(grid[min(best + 1, steps - 1)]))
+    ratio = (math.sqrt(5) - 1) / 2
+    for _ in range(refinements):
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        values = cost(torch.tensor([math.exp(a), math.exp(b)], dtype=torch.float64))
+        if float(values[0]) < float(values[1]):
+            high = b
+        else:
+            low = a
+    return math.exp((low + high) / 2)

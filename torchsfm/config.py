@@ -296,8 +296,8 @@ class PairsConfig:
 
     ``mode``: ``auto`` (every pair up to ``exhaustive_up_to`` views, else ``similarity``),
     ``sequential`` (pairs (i, i + d), d = 1 .. ``window``: video), ``exhaustive``, or
-    ``similarity`` (the sequential window plus each view's ``neighbours`` best partners by the
-    coarse score, if it reaches ``min_score``). Coarse matching: images reduced to about
+    ``similarity`` (each view's ``neighbours`` best partners by the coarse score and the pairs of
+    the sequential window, all if their score reaches ``min_score``). Coarse matching: images reduced to about
     ``coarse_size`` px on the long side, ``coarse_corners`` Harris corners, NCC on
     (2 ``patch_half_size`` + 1)² patches, mutual best above ``ncc_threshold``. ``guided``: a
     homography fitted to the coarse matches (``homography_threshold`` px, at least ``min_score``
@@ -306,8 +306,8 @@ class PairsConfig:
 
     mode: str = "auto"
     window: int = 2
-    exhaustive_up_to: int = 20
-    neighbours: int = 5
+    exhaustive_up_to: int = 8
+    neighbours: int = 4
     min_score: int = 12
     coarse_size: int = 320
     coarse_corners: int = 300
@@ -342,7 +342,12 @@ class ReconstructionConfig:
     and needs ``min_resection_inliers``. New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
-    Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end.
+    Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end;
+    then, ``retriangulations`` times, the tracks without a point are triangulated again from the
+    adjusted cameras and the model adjusted once more. The pipeline's adjustments use the robust
+    ``bundle_loss`` (at ``bundle_adjustment.loss_scale`` px): real matches hold outliers that
+    survive the epipolar and reprojection tests (``bundle_adjustment.loss`` stays the plain least
+    squares of :func:`torchsfm.bundle_adjust`).
     """
 
     min_pair_inliers: int = 30
@@ -354,8 +359,12 @@ class ReconstructionConfig:
     max_reprojection_error: float = 2.0
     min_track_views: int = 2
     bundle_every: int = 0
+    retriangulations: int = 1
+    bundle_loss: str = "cauchy"
 
     def __post_init__(self) -> None:
+        _require(self.retriangulations >= 0, "retriangulations", self.retriangulations, "must be >= 0")
+        _require(self.bundle_loss in ("none", "huber", "cauchy"), "bundle_loss", self.bundle_loss, "one of none, huber, cauchy")
         _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
         _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")
         _require(0 < self.max_homography_ratio <= 1, "max_homography_ratio", self.max_homography_ratio, "must lie in (0, 1]")

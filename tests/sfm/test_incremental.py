@@ -76,3 +76,33 @@ def test_distortion_without_K_is_refused(shared_data):
     sequence = read_strecha(shared_data / "strecha_fountain_P11")
     with pytest.raises(torchsfm.InputError, match="distortion needs K"):
         torchsfm.reconstruct(sequence.images[:3], None, distortion=torch.zeros(2))
+
+
+def test_a_stationary_stretch_is_registered_at_one_pose(shared_data):
+    """A video that stops: view 1 repeated three times. Every copy is registered, at the pose of
+    the original within 0.05 degrees and 0.5% of the path."""
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    images = [sequence.images[v] for v in (0, 1, 1, 1, 2, 3)]
+    model = torchsfm.reconstruct(images, sequence.K[0], generator=torch.Generator().manual_seed(0))
+    assert model.view_indices == list(range(6)), model.unregistered
+    copies = [model.view_indices.index(v) for v in (1, 2, 3)]
+    all_centres = model.cameras.center
+    centres = all_centres[copies]
+    extent = float((all_centres.amax(0) - all_centres.amin(0)).norm())
+    assert float((centres - centres[0]).norm(dim=-1).max()) < 0.005 * extent
+    relative = model.cameras.R[copies] @ model.cameras.R[copies[0]].T
+    angle = torch.rad2deg(torch.acos(((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)))
+    assert float(angle.max()) < 0.05
+
+
+def test_a_set_that_splits_reconstructs_the_larger_group_and_lists_the_rest(shared_data):
+    """Four fountain views and three Herz-Jesu views share nothing: the fountain (the larger
+    group) is reconstructed and every Herz-Jesu view is listed with its reason."""
+    fountain = read_strecha(shared_data / "strecha_fountain_P11")
+    herzjesu = read_strecha(shared_data / "strecha_herzjesu_P8")
+    images = [fountain.images[0], herzjesu.images[0], fountain.images[1], herzjesu.images[1], fountain.images[2],
+              herzjesu.images[2], fountain.images[3]]
+    model = torchsfm.reconstruct(images, fountain.K[0], generator=torch.Generator().manual_seed(0))
+    assert model.view_indices == [0, 2, 4, 6]
+    assert sorted(model.unregistered) == [1, 3, 5]
+    assert all("reconstructed points" in reason for reason in model.unregistered.values())

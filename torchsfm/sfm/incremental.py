@@ -12,6 +12,7 @@ removed and the model adjusted once more.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -42,6 +43,7 @@ from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relati
 from torchsfm.validation import check_finite
 
 Progress = Callable[[str], None]
+DETECTION_CHUNK = 8  # views per batched Harris call
 FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a common camera's field of view)
 FOCAL_REFINEMENT_RANGE = 1.1  # the bundle-adjusted profile searches f / 1.1 .. f × 1.1
 PRINCIPAL_POINT_RANGE = 0.02  # ... and the principal point ± 2% of the image's larger side
@@ -204,7 +206,8 @@ def _initial_pair(pairs: dict[tuple[int, int], _PairMatches], corners: list[Tens
 
 def _bundle(model: _Model, config: Config, fixed_view: int, usable: Tensor | None = None) -> float:
     """Adjust the registered cameras and the points with their inlier observations (or the
-    ``usable`` (T,) ones), in place; returns the final cost ½ Σ ‖r‖² (px²) per observation."""
+    ``usable`` (T,) ones), in place, with ``reconstruction.bundle_loss``; returns the final cost
+    per observation (px²)."""
     if usable is None:
         usable = model.observation_errors() < config.reconstruction.max_reprojection_error
     views = torch.nonzero(model.registered).flatten()
@@ -219,10 +222,21 @@ def _bundle(model: _Model, config: Config, fixed_view: int, usable: Tensor | Non
         point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
         fixed_cameras=views == fixed_view,
     )
-    result = bundle_adjust(problem, config=config.bundle_adjustment)
+    settings = dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
+    result = bundle_adjust(problem, config=settings)
     adjusted = result.problem
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
     return result.final_cost / max(int(usable.sum()), 1)
+
+
+def _detect(greys: Tensor, config: Config) -> list[Tensor]:
+    """Corners of every view, detected ``DETECTION_CHUNK`` views per batched call (the Harris
+    response's intermediate maps of a whole video would not fit in memory at once)."""
+    corners = []
+    for first in range(0, greys.shape[0], DETECTION_CHUNK):
+        detected = detect_corners(greys[first:first + DETECTION_CHUNK], config.harris)
+        corners += [detected.of_image(b) for b in range(detected.valid.shape[0])]
+    return corners
 
 
 def _self_calibrate(pairs: dict[tuple[int, int], _PairMatches], size: tuple[int, int], config: Config) -> Tensor:
@@ -372,8 +386,7 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
 
     greys = torch.stack([to_grey(image) for image in images])
     report(f"corners of {V} views")
-    detected = timed("corners", lambda: detect_corners(greys, config.harris))
-    raw = [detected.of_image(v) for v in range(V)]
+    raw = timed("corners", lambda: _detect(greys, config))
     corners = [undistort_points(raw[v].double(), K[v], distortion[v]) for v in range(V)]
     pairs = timed("matching", lambda: _match_pairs(greys, raw, corners, config, generator, report))
     if estimate_focal:
@@ -424,6 +437,10 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
             since_bundle = 0
     report(f"bundle adjustment of {int(model.registered.sum())} views and {int(model.has_point.sum())} points")
     timed("bundle adjustment", lambda: _bundle(model, config, first))
+    for _ in range(config.reconstruction.retriangulations):  # the adjusted cameras triangulate tracks the early ones could not
+        for view in torch.nonzero(model.registered).flatten().tolist():
+            timed("triangulation", lambda: model.triangulate_new(view))
+        timed("bundle adjustment", lambda: _bundle(model, config, first))
     # drop outlier observations and weak points, then adjust once more
     errors = model.observation_errors()
     inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())

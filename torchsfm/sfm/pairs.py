@@ -10,8 +10,9 @@ own position: disparities of hundreds of pixels then need no larger disc.
 
 Pair selection (``pairs.mode``): ``sequential`` — (i, i + d) for d = 1 .. ``window`` (video);
 ``exhaustive`` — every pair; ``similarity`` — each view's ``neighbours`` best-scoring partners
-plus the sequential window; ``auto`` — exhaustive up to ``exhaustive_up_to`` views, else
-similarity.
+plus the pairs of the sequential window that score at least ``min_score`` (so a shuffled set
+wastes no time on its file neighbours); ``auto`` — exhaustive up to ``exhaustive_up_to`` views,
+else similarity.
 """
 
 from __future__ import annotations
@@ -90,13 +91,15 @@ def select_pairs(scores: Tensor, config: PairsConfig) -> list[tuple[int, int]]:
         mode = "exhaustive" if V <= config.exhaustive_up_to else "similarity"
     if mode == "exhaustive":
         return [(i, j) for i in range(V) for j in range(i + 1, V)]
-    chosen = {(i, i + d) for d in range(1, config.window + 1) for i in range(V - d)}
-    if mode == "similarity":
-        ranked = torch.argsort(scores, dim=1, descending=True)[:, : config.neighbours]
-        for i in range(V):
-            for j in ranked[i].tolist():
-                if j != i and int(scores[i, j]) >= config.min_score:
-                    chosen.add((min(i, j), max(i, j)))
+    window = {(i, i + d) for d in range(1, config.window + 1) for i in range(V - d)}
+    if mode == "sequential":
+        return sorted(window)
+    chosen = {(i, j) for i, j in window if int(scores[i, j]) >= config.min_score}
+    ranked = torch.argsort(scores, dim=1, descending=True)[:, : config.neighbours]
+    for i in range(V):
+        for j in ranked[i].tolist():
+            if j != i and int(scores[i, j]) >= config.min_score:
+                chosen.add((min(i, j), max(i, j)))
     return sorted(chosen)
 
 

@@ -22,7 +22,7 @@ import torch
 
 from torchsfm.calibration.chessboard import detect_chessboard
 from torchsfm.calibration.zhang import board_points, calibrate_camera
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 PATTERN = (9, 7)

@@ -30,9 +30,9 @@ from torchsfm.config import Config
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.fundamental import fundamental_from_pose, symmetric_epipolar_distance
 from torchsfm.io.datasets import read_strecha
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
-from torchsfm.sfm.two_view_geometry import estimate_fundamental
+from torchsfm.estimators.two_view_geometry import estimate_fundamental
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

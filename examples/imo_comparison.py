@@ -34,7 +34,7 @@ import torchsfm
 from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import read_hopkins155, read_strecha
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import (insert_moving_patch, inserted_object_triplet, inside_boxes, rejection_figures,

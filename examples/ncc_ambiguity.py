@@ -18,7 +18,7 @@ import torch
 
 from torchsfm.config import Config
 from torchsfm.io.datasets import read_strecha
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.matching.ncc import extract_patches, ncc_candidates
 from torchsfm.sfm.two_view import TwoViewReconstruction
 

@@ -19,7 +19,7 @@ from torchsfm.config import Config, MatchingConfig
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.fundamental import symmetric_epipolar_distance
 from torchsfm.io.datasets import ground_truth_pairs
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

@@ -21,11 +21,11 @@ import torch
 from torchsfm.config import Config, with_overrides
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.fundamental import sampson_error, symmetric_epipolar_distance
-from torchsfm.geometry.fundamental_refinement import refine_fundamental
+from torchsfm.estimators.fundamental_refinement import refine_fundamental
 from torchsfm.io.datasets import ground_truth_pairs
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
-from torchsfm.sfm.two_view_geometry import estimate_fundamental
+from torchsfm.estimators.two_view_geometry import estimate_fundamental
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -9,7 +9,7 @@ import torch
 
 from torchsfm.actions import SAMPLE
 from torchsfm.cli import main
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.visualization import write_png
 
 IMAGE1, IMAGE2, K_FILE = SAMPLE / "0004.jpg", SAMPLE / "0005.jpg", SAMPLE / "K.txt"

@@ -29,10 +29,10 @@ from torchsfm.geometry.triangulation import TRIANGULATION_METHODS, triangulate
 from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects
 from torchsfm.moving.whole_track import TrackRejection, reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
-from torchsfm.sfm.absolute_pose import AbsolutePose, estimate_absolute_pose
+from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.incremental import reconstruct
-from torchsfm.sfm.reconstruction import Reconstruction
-from torchsfm.sfm.two_view_geometry import (
+from torchsfm.reconstruction import Reconstruction
+from torchsfm.estimators.two_view_geometry import (
     FundamentalEstimate,
     RelativePose,
     RelativePoseEstimator,

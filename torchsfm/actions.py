@@ -24,11 +24,11 @@ from torchsfm.geometry.fundamental import fundamental_from_pose
 from torchsfm.io.atomic import atomic_write_bytes, atomic_write_text
 from torchsfm.io.colmap import colmap_text
 from torchsfm.io.datasets import read_strecha
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.io.ply import ply_bytes
 from torchsfm.io.vrml import vrml_text
 from torchsfm.sfm.incremental import reconstruct
-from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import corners_figure, matches_figure, write_png

@@ -137,7 +137,7 @@ class RelativePoseConfig:
     ``method`` decomposes E: ``svd`` (default), ``linear`` (eq. 3.4.10–3.4.11) or
     ``quaternion`` (eq. 3.4.12–3.4.15), each followed by the cheirality test. With ``refine``
     (ours; the thesis stops at the decomposition) the pose is refined by LM on the Sampson error
-    from ``num_starts`` + 1 starts (see :mod:`torchsfm.sfm.calibrated_pose`; extra starts are
+    from ``num_starts`` + 1 starts (see :mod:`torchsfm.estimators.calibrated_pose`; extra starts are
     fitted to random subsets of ``start_sample_size`` of F's inliers; the ``kept_starts`` best go
     on after the first stage), re-classifying its support
     with thresholds shrinking from ``start_threshold_factor`` to ``refine_support_factor`` times

@@ -11,7 +11,7 @@ from torch import Tensor
 from torchsfm.camera import pixels_to_normalized, project, projection_matrix, to_homogeneous, undistort_normalized
 from torchsfm.geometry.fundamental import epipolar_line_distances, fundamental_from_pose
 from torchsfm.geometry.rotation import angle_between, axis_angle_to_rotation, rotation_angle
-from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
+from torchsfm.estimators.two_view_geometry import estimate_fundamental, estimate_relative_pose
 
 
 @dataclass
@@ -385,7 +385,7 @@ def match_triplet(images: list[Tensor], config=None) -> Tensor:
     two-view pipeline chains them: (3, N, 2) float64 for three (C, H, W) images."""
     from torchsfm.config import Config
     from torchsfm.features.harris import HarrisCorners
-    from torchsfm.io.images import to_grey
+    from torchsfm.images import to_grey
     from torchsfm.matching.matcher import PutativeMatcher, chain_matches
 
     config = config or Config()
@@ -402,7 +402,7 @@ def inserted_object_triplet(sequence, first: int, patch: Tensor, *, static_thres
                             config=None) -> InsertedObjectTriplet:
     """Frames first..first+2 of a :class:`~torchsfm.io.datasets.StrechaSequence` with ``patch``
     pasted at :data:`PATCH_POSITIONS`, matched, and labelled against the ground truth."""
-    from torchsfm.io.images import read_image
+    from torchsfm.images import read_image
 
     frames, boxes = insert_moving_patch([read_image(sequence.images[first + j]) for j in range(3)], patch)
     tracks = match_triplet(frames, config)

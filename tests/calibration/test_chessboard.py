@@ -5,7 +5,7 @@ import torch
 
 from torchsfm.calibration.chessboard import detect_chessboard
 from torchsfm.calibration.zhang import board_points, calibrate_camera, project_board
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.testing import render_chessboard, visible_board_poses, wide_angle_camera
 
 PATTERN = (9, 7)

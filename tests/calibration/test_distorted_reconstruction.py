@@ -10,7 +10,7 @@ from torchsfm.calibration.chessboard import detect_chessboard
 from torchsfm.calibration.zhang import board_points, calibrate_camera
 from torchsfm.evaluation import camera_errors
 from torchsfm.geometry.rotation import axis_angle_to_rotation
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import (render_chessboard, render_corner_scene, rotation_error_deg, translation_direction_error_deg,
                               visible_board_poses, wide_angle_camera)

@@ -5,7 +5,8 @@ from torch.testing import assert_close
 import torchsfm
 from torchsfm.config import LMConfig
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
-from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, refine_pose, reprojection_errors
+from torchsfm.estimators.resection_refinement import refine_pose
+from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
 from torchsfm.geometry.rotation import axis_angle_to_rotation, rotation_angle
 
 DOUBLE = dict(dtype=torch.float64)

@@ -8,7 +8,7 @@ from torchsfm.io.atomic import atomic_write_text
 from torchsfm.io.colmap import read_colmap_text, write_colmap_text
 from torchsfm.io.ply import write_ply
 from torchsfm.io.vrml import vrml_text, write_vrml
-from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import Reconstruction
 from torchsfm.testing import synthetic_two_view
 
 

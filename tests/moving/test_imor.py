@@ -7,7 +7,7 @@ import torch
 from torchsfm.config import Config, with_overrides
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.io.datasets import read_hopkins155, read_strecha
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import inserted_object_triplet, rejection_figures, synthetic_moving_scene

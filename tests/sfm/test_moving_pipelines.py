@@ -11,7 +11,7 @@ from torchsfm.cli import main
 from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import read_strecha
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import insert_moving_patch, inside_boxes, rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import write_png

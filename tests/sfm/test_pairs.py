@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchsfm.config import PairsConfig
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 

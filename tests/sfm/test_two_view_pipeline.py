@@ -10,7 +10,7 @@ import torch
 
 from torchsfm.geometry.fundamental import symmetric_epipolar_distance
 from torchsfm.io.datasets import ground_truth_pairs
-from torchsfm.io.images import read_image
+from torchsfm.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
 

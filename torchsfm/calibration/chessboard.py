@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchsfm.config import ChessboardConfig
-from torchsfm.io.images import to_grey
+from torchsfm.images import to_grey
 
 NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 

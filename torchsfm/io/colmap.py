@@ -18,7 +18,7 @@ from torchsfm.camera import Camera
 from torchsfm.errors import InputError
 from torchsfm.geometry.rotation import quaternion_to_rotation, rotation_to_quaternion
 from torchsfm.io.atomic import atomic_write_text
-from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import Reconstruction
 
 PIXEL_SHIFT = 0.5  # COLMAP pixel coordinate = torchsfm pixel coordinate + 0.5
 

@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.io.atomic import atomic_write_text
-from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import Reconstruction
 
 
 def camera_pyramid(K: Tensor, R: Tensor, t: Tensor, image_size: Tensor, depth: float) -> Tensor:

@@ -29,17 +29,17 @@ from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughD
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.geometry.triangulation import triangulate_points
-from torchsfm.io.images import read_image, to_grey
+from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
-from torchsfm.sfm.absolute_pose import estimate_absolute_pose
+from torchsfm.estimators.absolute_pose import estimate_absolute_pose
 from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
-from torchsfm.sfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.two_view_geometry import estimate_fundamental, estimate_relative_pose
+from torchsfm.estimators.two_view_geometry import estimate_fundamental, estimate_relative_pose
 from torchsfm.validation import check_finite
 
 Progress = Callable[[str], None]
@@ -321,7 +321,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         progress: called with a message at each step.
 
     Returns:
-        A :class:`~torchsfm.sfm.reconstruction.Reconstruction` of the registered views
+        A :class:`~torchsfm.reconstruction.Reconstruction` of the registered views
         (``view_indices`` maps them to the input list; ``unregistered`` gives the others with the
         reason). Scale: the initial pair's baseline is 1.
     """

@@ -1,7 +1,7 @@
 """Two images and K in, a sparse 3-D model out (thesis §3.1, Fig. 3.1), as a sequence of stages.
 
 Harris corners → NCC candidates → strength measure + relaxation → robust F (bucketed RANSAC,
-LM) → E → R, t → polynomial triangulation → :class:`~torchsfm.sfm.reconstruction.Reconstruction`.
+LM) → E → R, t → polynomial triangulation → :class:`~torchsfm.reconstruction.Reconstruction`.
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from torchsfm.camera import Camera, check_intrinsics, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
 from torchsfm.features.harris import HarrisCorners
-from torchsfm.io.images import to_grey
+from torchsfm.images import to_grey
 from torchsfm.matching.matcher import PutativeMatcher, chain_matches
 from torchsfm.moving.imor import reject_moving_objects
-from torchsfm.sfm.reconstruction import Reconstruction
-from torchsfm.sfm.two_view_geometry import RelativePoseEstimator
+from torchsfm.reconstruction import Reconstruction
+from torchsfm.estimators.two_view_geometry import RelativePoseEstimator
 from torchsfm.validation import check_finite, check_shapes
 
 Progress = Callable[[str], None]

@@ -2,7 +2,7 @@ import torch
 from torch.testing import assert_close
 
 from torchsfm.config import LMConfig
-from torchsfm.geometry import fundamental_refinement, pose_refinement
+from torchsfm.estimators import fundamental_refinement, pose_refinement
 from torchsfm.geometry.fundamental import eight_point, fundamental_from_pose, normalize_scale, sampson_error
 from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.optim.lm import forward_jacobian

@@ -10,7 +10,8 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics
 from torchsfm.config import Config
 from torchsfm.errors import NotEnoughDataError, ShapeError
-from torchsfm.geometry.resection import refine_pose, reprojection_errors
+from torchsfm.estimators.resection_refinement import refine_pose
+from torchsfm.geometry.resection import reprojection_errors
 from torchsfm.robust.models import ResectionModel
 from torchsfm.robust.ransac import ransac
 from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes

@@ -25,7 +25,7 @@ from torchsfm.camera import pixels_to_normalized
 from torchsfm.config import Config
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_pose, project_to_essential, select_pose
 from torchsfm.geometry.fundamental import eight_point, fundamental_from_pose, sampson_error
-from torchsfm.geometry.pose_refinement import refine_relative_pose
+from torchsfm.estimators.pose_refinement import refine_relative_pose
 from torchsfm.robust.samplers import BucketedSampler
 
 

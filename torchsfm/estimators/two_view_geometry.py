@@ -18,10 +18,10 @@ from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
 from torchsfm.geometry.essential import essential_from_fundamental
 from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
-from torchsfm.geometry.fundamental_refinement import refine_fundamental
+from torchsfm.estimators.fundamental_refinement import refine_fundamental
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.robust.models import FundamentalModel
-from torchsfm.sfm.calibrated_pose import calibrated_pose
+from torchsfm.estimators.calibrated_pose import calibrated_pose
 from torchsfm.robust.ransac import ransac
 from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
 

@@ -82,3 +82,25 @@ def test_bad_input():
         torchsfm.estimate_absolute_pose(X, x[:10], K)
     with pytest.raises(DegenerateConfigurationError, match="K is singular"):
         torchsfm.estimate_absolute_pose(X, x, torch.zeros(3, 3, **DOUBLE))
+
+
+def test_p3p_degenerate_samples_are_invalid_not_fatal():
+    """Regression: coincident 3-D points once fed a non-finite companion matrix to LAPACK (a
+    segmentation fault). They come back invalid; collinear ones (a pose family) come back without
+    error, every solution marked valid finite."""
+    X = torch.tensor([[[0.0, 0.0, 5.0]] * 3, [[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [2.0, 0.0, 5.0]]], dtype=torch.float64)
+    bearings = X / X.norm(dim=-1, keepdim=True)
+    R, t, valid = p3p(X, bearings)
+    assert not valid[0].any()
+    assert torch.isfinite(R[valid]).all() and torch.isfinite(t[valid]).all()
+
+
+def test_estimate_absolute_pose_with_half_the_points_identical():
+    """The reported crash: half the 3-D points identical. The pose comes back from the others."""
+    g = torch.Generator().manual_seed(0)
+    X = torch.randn(40, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 6.0], dtype=torch.float64)
+    X[20:] = X[0]
+    K = torch.tensor([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]], dtype=torch.float64)
+    x = X @ K.T
+    pose = torchsfm.estimate_absolute_pose(X, x[:, :2] / x[:, 2:], K, generator=g)
+    torch.testing.assert_close(pose.R, torch.eye(3, dtype=torch.float64), atol=1e-8, rtol=0)

@@ -67,3 +67,20 @@ def test_damping_adapts_to_scale(shift):
     result = levenberg_marquardt(lambda p: (A @ p[..., None]).squeeze(-1) - b, torch.zeros(1, 3, **DOUBLE), LMConfig())
     expected = torch.linalg.lstsq(A, b[..., None]).solution.squeeze(-1)
     assert_close(result.params, expected, rtol=1e-6, atol=1e-9)
+
+
+def test_status_is_honest():
+    """A NaN start is ``failed`` (nothing done); a residual no step can decrease (its Jacobian is
+    wrong) ends ``stalled``, not ``converged``."""
+    nan_start = levenberg_marquardt(rosenbrock, torch.tensor([[float("nan"), 1.0]], **DOUBLE), LMConfig())
+    assert nan_start.failed.all() and not nan_start.converged.any() and nan_start.num_iterations.item() == 0
+
+    def residual(p):
+        return p.square() + 1.0  # minimum at 0, but the Jacobian below points the wrong way
+
+    def wrong_jacobian(p):
+        return -torch.diag_embed(2 * p)
+
+    result = levenberg_marquardt(residual, torch.tensor([[1.0, 2.0]], **DOUBLE), LMConfig(max_iterations=500),
+                                 jacobian=wrong_jacobian)
+    assert result.stalled.all() and not result.converged.any() and not result.failed.any()

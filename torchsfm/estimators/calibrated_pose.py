@@ -26,7 +26,7 @@ from torchsfm.config import Config
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_pose, project_to_essential, select_pose
 from torchsfm.geometry.fundamental import eight_point, fundamental_from_pose, sampson_error
 from torchsfm.estimators.pose_refinement import refine_relative_pose
-from torchsfm.robust.samplers import BucketedSampler
+from torchsfm.robust.samplers import BucketedSampler, resolve_generator
 
 
 def threshold_schedule(threshold: float, start_factor: float, end_factor: float) -> list[float]:
@@ -66,7 +66,7 @@ def calibrated_pose(
     sample_size = min(settings.start_sample_size, int(candidates.sum(-1).min()))
     if settings.num_starts > 0 and sample_size >= 8:
         sampler = BucketedSampler(x1, candidates, config.fundamental.ransac.grid_size)
-        index = sampler.sample(settings.num_starts, sample_size, generator)  # (B, S', size)
+        index = sampler.sample(settings.num_starts, sample_size, resolve_generator(generator, x1.device))  # (B, S', size)
         subsets = torch.zeros(B, settings.num_starts, N, dtype=x1.dtype, device=x1.device).scatter_(2, index, 1.0)
         sampled = project_to_essential(eight_point(n1[:, None], n2[:, None], subsets))
         starts = torch.cat([starts, sampled], dim=1)

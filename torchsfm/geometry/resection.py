@@ -86,6 +86,11 @@ def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     A1 = 4 * (-p * (1 + p) * cos_beta + 2 * a2 / b2 * cos_gamma**2 * cos_beta - (1 - q) * cos_alpha * cos_gamma)
     A0 = (1 + p) ** 2 - 4 * a2 / b2 * cos_gamma**2
     coefficients = torch.stack([A3, A2, A1, A0], dim=-1) / A4[..., None]
+    # a degenerate sample (coincident or collinear points: b2 or A4 = 0) gives a non-finite
+    # quartic; LAPACK's eigvals must never see one (it can crash the process): solve a harmless
+    # stand-in and mark the sample invalid
+    finite = torch.isfinite(coefficients).all(-1)
+    coefficients = torch.where(finite[..., None], coefficients, torch.zeros_like(coefficients))
     companion = torch.zeros(*A4.shape, 4, 4, dtype=X.dtype, device=X.device)
     companion[..., 0, :] = -coefficients
     companion[..., 1, 0] = companion[..., 2, 1] = companion[..., 3, 2] = 1.0
@@ -97,8 +102,11 @@ def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     s1 = s1_squared.clamp_min(0).sqrt()
     depths = torch.stack([s1, u * s1, v * s1], dim=-1)  # (*, 4, 3)
     in_camera = depths[..., :, None] * bearings[..., None, :, :]  # (*, 4, 3, 3)
-    R, t = _absolute_orientation(X[..., None, :, :].expand_as(in_camera), in_camera)
-    valid = real & (s1_squared > 0) & (depths > 0).all(-1) & torch.isfinite(R).flatten(-2).all(-1) & torch.isfinite(t).all(-1)
+    usable = torch.isfinite(in_camera).flatten(-2).all(-1) & torch.isfinite(X).flatten(-2).all(-1)[..., None]
+    in_camera = torch.where(usable[..., None, None], in_camera, torch.zeros_like(in_camera))  # the SVD must not see NaN
+    R, t = _absolute_orientation(torch.nan_to_num(X)[..., None, :, :].expand_as(in_camera), in_camera)
+    valid = (finite[..., None] & usable & real & (s1_squared > 0) & (depths > 0).all(-1) & torch.isfinite(R).flatten(-2).all(-1)
+             & torch.isfinite(t).all(-1))
     return R, t, valid
 
 

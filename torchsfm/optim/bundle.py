@@ -113,13 +113,16 @@ class BundleProblem:
 
 @dataclass
 class BundleResult:
-    """Outcome of :func:`bundle_adjust`: the adjusted problem and ½ Σ ‖r‖² before and after."""
+    """Outcome of :func:`bundle_adjust`: the adjusted problem and ½ Σ ‖r‖² before and after;
+    ``status`` is ``converged``, ``stalled`` (no step decreased the cost any more), ``failed``
+    (the initial cost was not finite) or ``max_iterations``."""
 
     problem: BundleProblem
     initial_cost: float
     final_cost: float
     num_iterations: int
     converged: bool
+    status: str = "converged"
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -381,4 +384,6 @@ def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | No
     adjusted.intrinsics = intrinsics.clone()
     return BundleResult(problem=adjusted, initial_cost=problem.cost(), final_cost=adjusted.cost(),
                         num_iterations=int(result.num_iterations[0]), converged=bool(result.converged[0]),
+                        status=("converged" if bool(result.converged[0]) else "stalled" if bool(result.stalled[0])
+                                else "failed" if bool(result.failed[0]) else "max_iterations"),
                         timings={"bundle_adjustment": time.perf_counter() - start})

@@ -63,7 +63,11 @@ class LMResult:
         params: (B, S) final parameters.
         initial_cost, cost: (B,) cost before and after.
         num_iterations: (B,) int64, damped steps tried (accepted or not).
-        converged: (B,) bool, stopped by a tolerance rather than by ``max_iterations``.
+        converged: (B,) bool, stopped by a tolerance (step, cost decrease or gradient).
+        stalled: (B,) bool, stopped because the damping exploded: no step decreased the cost
+            (not converged: the result is the last accepted point, which may be far from a minimum).
+        failed: (B,) bool, the initial cost was not finite: nothing was done.
+        A problem none of the three describes ran out of ``max_iterations``.
     """
 
     params: Tensor
@@ -71,6 +75,8 @@ class LMResult:
     cost: Tensor
     num_iterations: Tensor
     converged: Tensor
+    stalled: Tensor
+    failed: Tensor
 
 
 def _merge(accept: Tensor, new: Linearization, old: Linearization) -> Linearization:
@@ -99,8 +105,10 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
 
     mu = config.initial_damping * (torch.ones_like(cost) if diagonal_damping else linear.diagonal.amax(-1).clamp_min(1e-300))
     nu = torch.full_like(mu, 2.0)
-    converged = linear.gradient.abs().amax(-1) <= config.gradient_tolerance
-    active = ~converged
+    failed = ~torch.isfinite(cost)
+    converged = ~failed & (linear.gradient.abs().amax(-1) <= config.gradient_tolerance)
+    stalled = torch.zeros_like(converged)
+    active = ~converged & ~failed
     iterations = torch.zeros_like(mu, dtype=torch.long)
     for _ in range(config.max_iterations):
         if not bool(active.any()):
@@ -117,6 +125,7 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
 
         params = torch.where(accept.reshape(-1, *[1] * (params.dim() - 1)), candidate, params)
+        cost_before = cost
         cost = torch.where(accept, cost_new, cost)
         if bool(accept.any()):
             linear = _merge(accept, problem.linearize(params), linear)
@@ -126,10 +135,14 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
 
         iterations = iterations + active.long()
         small_gradient = linear.gradient.abs().amax(-1) <= config.gradient_tolerance
-        stalled = mu > _MAX_DAMPING
-        converged = converged | (active & (tiny_step | small_decrease | small_gradient | stalled))
-        active = active & ~converged
-    return LMResult(params=params, initial_cost=initial_cost, cost=cost, num_iterations=iterations, converged=converged)
+        # a vanishing step is convergence only if it does not raise the cost; a step that shrank
+        # because every larger one was rejected (the damping grew) is a stall
+        no_worse = torch.isfinite(cost_new) & (cost_new <= cost_before)
+        converged = converged | (active & ((tiny_step & no_worse) | small_decrease | small_gradient))
+        stalled = stalled | (active & ~converged & ((tiny_step & ~no_worse) | (mu > _MAX_DAMPING)))
+        active = active & ~converged & ~stalled
+    return LMResult(params=params, initial_cost=initial_cost, cost=cost, num_iterations=iterations, converged=converged,
+                    stalled=stalled, failed=failed)
 
 
 class DenseLinearization:

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import RansacConfig
-from torchsfm.robust.samplers import SAMPLERS, UniformSampler
+from torchsfm.robust.samplers import SAMPLERS, UniformSampler, resolve_generator
 
 
 class RobustModel(Protocol):
@@ -105,7 +105,8 @@ def ransac(
         data: (B, N, D) rows, one problem per batch entry.
         config: threshold, confidence, trial cap, sampler, scoring, refits, preemption.
         valid: optional (B, N) bool; False rows are padding and never sampled nor counted.
-        generator: source of all random draws (seed it for reproducible results).
+        generator: source of all random draws; None means a generator seeded with 0 (the one
+            policy of torchsfm: results are reproducible unless the caller passes its own).
 
     Returns:
         A :class:`RansacResult`; problems with fewer than ``sample_size`` valid rows report
@@ -114,6 +115,7 @@ def ransac(
     B, N, D = data.shape
     s = model.sample_size
     device = data.device
+    generator = resolve_generator(generator, device)
     if valid is None:
         valid = torch.ones(B, N, dtype=torch.bool, device=device)
     num_valid = valid.sum(-1)

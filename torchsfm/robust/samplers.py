@@ -10,6 +10,12 @@ import torch
 from torch import Tensor
 
 
+
+def resolve_generator(generator: torch.Generator | None, device: torch.device | str = "cpu") -> torch.Generator:
+    """The one randomness policy: the caller's generator, or one seeded with 0 (reproducible)."""
+    return generator if generator is not None else torch.Generator(device=device).manual_seed(0)
+
+
 def _weighted_top_k(weights: Tensor, k: int, generator: torch.Generator | None) -> Tensor:
     """Indices of k draws without replacement, each ∝ its weight among the remaining.
 

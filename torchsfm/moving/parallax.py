@@ -58,6 +58,8 @@ def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfi
         model = JointModel(HomographyModel, data)
         found = ransac(model, data, config.plane_ransac, generator=generator)
         H = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 3, 3)
-        warped = from_homogeneous(to_homogeneous(others) @ torch.linalg.inv(H).transpose(-1, -2))
+        inverse, info = torch.linalg.inv_ex(H)  # a singular plane (degenerate points) warps to infinity: IMOR falls back
+        inverse = torch.where((info == 0)[:, None, None], inverse, torch.full_like(inverse, float("inf")))
+        warped = from_homogeneous(to_homogeneous(others) @ inverse.transpose(-1, -2))
     return PlaneParallax(warped=warped, parallax=warped - reference, plane_inliers=found.inlier_mask[0],
                          num_trials=int(found.num_trials[0]))

@@ -85,7 +85,9 @@ class BucketedSampler:
         starts = torch.gather(self.starts, 1, flat)
         u = torch.rand(flat.shape, generator=generator, device=flat.device)
         offset = (u * counts).long().clamp_max(counts - 1).clamp_min(0)
-        indices = torch.gather(self.order, 1, starts + offset).reshape(B, num_samples, sample_size)
+        # an empty bucket (drawn only when fewer than s are occupied: replaced below) must not index past the end
+        position = (starts + offset).clamp_max(self.order.shape[1] - 1)
+        indices = torch.gather(self.order, 1, position).reshape(B, num_samples, sample_size)
         too_few_buckets = self.occupied < sample_size
         if bool(too_few_buckets.any()):
             fallback = self.uniform.sample(num_samples, sample_size, generator)

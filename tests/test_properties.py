@@ -1,0 +1,165 @@
+"""Property-based tests (Hypothesis): every public entry point, on generated shapes, dtypes and
+degenerate configurations, returns finite results or raises a TorchSfmError — never a crash, a
+NaN or a foreign exception. 200 generated cases per entry point."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsfm
+from torchsfm.errors import TorchSfmError
+
+hypothesis = pytest.importorskip("hypothesis", reason="property-based tests need Hypothesis (the dev extra)")
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+CASES = settings(max_examples=200, deadline=None, derandomize=True,
+                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+DEGENERACIES = ("none", "identical", "collinear", "coplanar", "duplicates", "nan", "inf", "zero_baseline", "tiny")
+K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def _scene(seed: int, n: int, degeneracy: str, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(X (n, 3), x1 (n, 2), x2 (n, 2)) of two views, with the degeneracy applied."""
+    g = torch.Generator().manual_seed(seed)
+    X = torch.randn(n, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 6.0], dtype=torch.float64)
+    if degeneracy == "identical":
+        X[:] = X[0]
+    elif degeneracy == "collinear":
+        X = X[:1] + torch.linspace(0, 1, n, dtype=torch.float64)[:, None] * torch.tensor([1.0, 0.5, 0.2], dtype=torch.float64)
+    elif degeneracy == "coplanar":
+        X[:, 2] = 6.0
+    elif degeneracy == "duplicates":
+        X[n // 2:] = X[: n - n // 2].clone()
+    elif degeneracy == "tiny":
+        X = X * 1e-9 + torch.tensor([0.0, 0.0, 6.0], dtype=torch.float64)
+    baseline = torch.zeros(3, dtype=torch.float64) if degeneracy == "zero_baseline" else torch.tensor([1.0, 0.1, 0.0], dtype=torch.float64)
+    x1 = X @ K.T
+    x2 = (X - baseline) @ K.T
+    x1, x2 = x1[:, :2] / x1[:, 2:], x2[:, :2] / x2[:, 2:]
+    if degeneracy in ("nan", "inf"):
+        x1[n // 3, 0] = float(degeneracy)
+    return X.to(dtype), x1.to(dtype), x2.to(dtype)
+
+
+def _finite(*tensors: torch.Tensor) -> bool:
+    return all(bool(torch.isfinite(t.float()).all()) for t in tensors if t is not None and t.is_floating_point())
+
+
+def _call(function, *args, **kwargs):
+    """The result, or None when a TorchSfmError was raised (any other exception propagates)."""
+    try:
+        return function(*args, **kwargs)
+    except TorchSfmError:
+        return None
+
+
+common = dict(seed=st.integers(0, 10_000), n=st.integers(1, 60), degeneracy=st.sampled_from(DEGENERACIES),
+              dtype=st.sampled_from([torch.float32, torch.float64]), batch=st.integers(0, 3))
+
+
+def _batched(tensor: torch.Tensor, batch: int) -> torch.Tensor:
+    return tensor if batch == 0 else tensor.expand(batch, *tensor.shape).clone()
+
+
+@CASES
+@given(**common)
+def test_estimate_fundamental(seed, n, degeneracy, dtype, batch):
+    _, x1, x2 = _scene(seed, n, degeneracy, dtype)
+    result = _call(torchsfm.estimate_fundamental, _batched(x1, batch), _batched(x2, batch), generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert _finite(result.F, result.sampson_rms)
+
+
+@CASES
+@given(**common)
+def test_estimate_relative_pose(seed, n, degeneracy, dtype, batch):
+    _, x1, x2 = _scene(seed, n, degeneracy, dtype)
+    Kd = K.to(dtype)
+    result = _call(torchsfm.estimate_relative_pose, _batched(x1, batch), _batched(x2, batch), Kd, Kd,
+                   generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        points = result.points3d if isinstance(result.points3d, torch.Tensor) else torch.cat(result.points3d)
+        assert _finite(result.R, result.t, points)
+
+
+@CASES
+@given(**common, method=st.sampled_from(sorted(torchsfm.TRIANGULATION_METHODS)))
+def test_triangulate(seed, n, degeneracy, dtype, batch, method):
+    _, x1, x2 = _scene(seed, n, degeneracy, dtype)
+    P1 = torch.cat([K, torch.zeros(3, 1, dtype=torch.float64)], dim=1).to(dtype)
+    shift = 0.0 if degeneracy == "zero_baseline" else -500.0
+    P2 = P1.clone()
+    P2[0, 3] = shift
+    result = _call(torchsfm.triangulate, _batched(x1, batch), _batched(x2, batch), P1, P2, method=method)
+    if result is not None:
+        assert _finite(result)
+
+
+@CASES
+@given(**common)
+def test_estimate_absolute_pose(seed, n, degeneracy, dtype, batch):
+    X, x1, _ = _scene(seed, n, degeneracy, dtype)
+    result = _call(torchsfm.estimate_absolute_pose, _batched(X, batch), _batched(x1, batch), K.to(dtype),
+                   generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert _finite(result.R, result.t)
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 50), degeneracy=st.sampled_from(DEGENERACIES),
+       dtype=st.sampled_from([torch.float32, torch.float64]))
+def test_reject_moving_objects(seed, n, degeneracy, dtype):
+    X, x1, x2 = _scene(seed, n, degeneracy, dtype)
+    x0 = 2 * x1 - x2  # a third frame continuing the motion
+    result = _call(torchsfm.reject_moving_objects, x0, x1, x2, generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert result.background_mask.shape == (n,)
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 40), frames=st.integers(1, 5), degeneracy=st.sampled_from(DEGENERACIES),
+       gaps=st.floats(0.0, 0.6), method=st.sampled_from(["triplets", "rigid_groups", "both"]))
+def test_reject_moving_objects_in_tracks(seed, n, frames, degeneracy, gaps, method):
+    _, x1, x2 = _scene(seed, n, degeneracy, torch.float64)
+    tracks = torch.stack([x1 + k * (x2 - x1) for k in range(frames)])
+    visible = torch.rand(frames, n, generator=torch.Generator().manual_seed(seed)) >= gaps
+    config = torchsfm.with_overrides(torchsfm.Config(), [f"moving_objects.track_method={method}"])
+    result = _call(torchsfm.reject_moving_objects_in_tracks, tracks, visible, config=config,
+                   generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert result.background_mask.shape == (n,) and not bool((result.background_mask & ~result.tested).any())
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), cameras=st.integers(2, 4), points=st.integers(1, 30),
+       corruption=st.sampled_from(["none", "nan_observation", "behind", "identical_points", "one_observation"]))
+def test_bundle_adjust(seed, cameras, points, corruption):
+    g = torch.Generator().manual_seed(seed)
+    X = torch.randn(points, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 6.0], dtype=torch.float64)
+    if corruption == "identical_points":
+        X[:] = X[0]
+    R = torch.eye(3, dtype=torch.float64).repeat(cameras, 1, 1)
+    t = torch.stack([torch.tensor([-0.5 * c, 0.0, 0.0], dtype=torch.float64) for c in range(cameras)])
+    camera_index = torch.arange(cameras).repeat_interleave(points)
+    point_index = torch.arange(points).repeat(cameras)
+    camera_points = X[point_index] + t[camera_index]
+    observations = (camera_points @ K.T)[:, :2] / camera_points[:, 2:]
+    if corruption == "nan_observation":
+        observations[0, 0] = float("nan")
+    if corruption == "behind":
+        X[0, 2] = -6.0
+    if corruption == "one_observation":
+        camera_index, point_index, observations = camera_index[:1], point_index[:1], observations[:1]
+    problem = _call(torchsfm.BundleProblem, camera_model="pinhole", rotations=R, translations=t, intrinsics=K.expand(cameras, 3, 3),
+                                     points=X + 0.01 * torch.randn(points, 3, generator=g, dtype=torch.float64),
+                                     camera_index=camera_index, point_index=point_index, observations=observations,
+                                     fixed_cameras=torch.arange(cameras) == 0)
+    result = None if problem is None else _call(torchsfm.bundle_adjust, problem)
+    if result is not None:
+        assert result.status in ("converged", "stalled", "failed", "max_iterations")
+        if result.status != "failed":
+            assert math.isfinite(result.final_cost) and _finite(result.problem.points, result.problem.translations)

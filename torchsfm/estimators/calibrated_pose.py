@@ -80,7 +80,8 @@ def calibrated_pose(
             R = torch.gather(R, 1, keep[..., None, None].expand(B, -1, 3, 3))
             t = torch.gather(t, 1, keep[..., None].expand(B, -1, 3))
     best = _truncated_cost(R, t, x1, x2, K1, K2, threshold).argmin(dim=1)
-    R, t = R[torch.arange(B), best], t[torch.arange(B), best]
+    batch = torch.arange(B, device=best.device)
+    R, t = R[batch, best], t[batch, best]
     inliers = sampson_error(fundamental_from_pose(K1, K2, R, t), x1, x2) < threshold**2
     # Epipolar errors cannot tell (R, t) from (R, -t) or the twisted pair: settle it by cheirality.
     R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_pose(R, t)), n1, n2, inliers.to(x1.dtype))

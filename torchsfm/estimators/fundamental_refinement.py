@@ -56,7 +56,7 @@ def _tangent_derivatives(state: Tensor) -> Tensor:
     U = state[:, :9].reshape(-1, 1, 3, 3)
     Vt = state[:, 9:18].reshape(-1, 1, 3, 3).transpose(-1, -2)
     S = torch.diag_embed(torch.stack([torch.ones_like(state[:, 18]), state[:, 18], torch.zeros_like(state[:, 18])], dim=-1))[:, None]
-    generators = torch.cat([_ROTATION_GENERATORS.to(state.dtype), _SIGMA_DIRECTION.to(state.dtype)])  # (4, 3, 3)
+    generators = torch.cat([_ROTATION_GENERATORS.to(state), _SIGMA_DIRECTION.to(state)])  # (4, 3, 3)
     return torch.cat([U @ generators[:3] @ S @ Vt, -(U @ S @ generators[:3] @ Vt), U @ generators[3:] @ Vt], dim=1)
 
 

@@ -57,7 +57,7 @@ def relative_pose_problem(
 
     def jacobian(state: Tensor) -> Tensor:
         R, t = state[:, None, :9].reshape(-1, 1, 3, 3), state[:, None, 9:]
-        d_rotation = skew(t) @ _ROTATION_GENERATORS.to(state.dtype) @ R  # R ← exp([ω]x) R: (B, 3, 3, 3)
+        d_rotation = skew(t) @ _ROTATION_GENERATORS.to(state) @ R  # R ← exp([ω]x) R: (B, 3, 3, 3)
         d_translation = skew(sphere_tangent_basis(state[:, 9:])) @ R  # (B, 2, 3, 3)
         d_F = K2_inv_t[:, None] @ torch.cat([d_rotation, d_translation], dim=1) @ K1_inv[:, None]
         return sampson_jacobian(fundamental(state), x1, x2, d_F) * root_weights[..., None]

@@ -175,7 +175,7 @@ def estimate_relative_pose(
     R, t, inliers = calibrated_pose(essential_from_fundamental(F, K1b, K2b), x1b, x2b, K1b, K2b, candidates, config, generator)
     F = fundamental_from_pose(K1b, K2b, R, t)
 
-    P1 = projection_matrix(K1b, torch.eye(3, dtype=torch.float64).expand(B, 3, 3), torch.zeros(B, 3, dtype=torch.float64))
+    P1 = projection_matrix(K1b, torch.eye(3, dtype=torch.float64, device=K1b.device).expand(B, 3, 3), torch.zeros(B, 3, dtype=torch.float64, device=K1b.device))
     P2 = projection_matrix(K2b, R, t)
     X = triangulate_points(x1b, x2b, P1, P2, config.triangulation)  # (B, N, 3)
     depth2 = (X @ R.transpose(-1, -2) + t[:, None, :])[..., 2]

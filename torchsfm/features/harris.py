@@ -57,10 +57,10 @@ def harris_response(image: Tensor, k: float = 0.04, window: int = 3) -> Tensor:
     return xx * yy - xy * xy - k * (xx + yy) ** 2
 
 
-def _biquadric_solver(window: int, dtype: torch.dtype) -> Tensor:
+def _biquadric_solver(window: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Pseudo-inverse (6, N²) of the design matrix of eq. B.2 on the N×N offsets (row-major)."""
     half = window // 2
-    ys, xs = torch.meshgrid(torch.arange(-half, half + 1, dtype=dtype), torch.arange(-half, half + 1, dtype=dtype), indexing="ij")
+    ys, xs = torch.meshgrid(torch.arange(-half, half + 1, dtype=dtype, device=device), torch.arange(-half, half + 1, dtype=dtype, device=device), indexing="ij")
     x, y = xs.flatten(), ys.flatten()
     design = torch.stack([x * x, y * y, x * y, x, y, torch.ones_like(x)], dim=-1)
     return torch.linalg.pinv(design)
@@ -82,7 +82,7 @@ def biquadric_peaks(response: Tensor, pixels: Tensor, window: int) -> tuple[Tens
     patches = functional.unfold(response[None], window, padding=half)[0]  # (N², H * W)
     W = response.shape[-1]
     values = patches[:, pixels[:, 1] * W + pixels[:, 0]].T.double()  # (K, N²)
-    K1, K2, K3, K4, K5, _ = (values @ _biquadric_solver(window, values.dtype).T).unbind(-1)
+    K1, K2, K3, K4, K5, _ = (values @ _biquadric_solver(window, values.dtype, values.device).T).unbind(-1)
     determinant = 4 * K1 * K2 - K3 * K3
     x0 = (K3 * K5 - 2 * K2 * K4) / determinant
     y0 = (K3 * K4 - 2 * K1 * K5) / determinant
@@ -108,7 +108,7 @@ def _select(scores: Tensor, width: int, height: int, config: HarrisConfig) -> Te
     counts = torch.bincount(cell, minlength=grid * grid)
     starts = torch.cumsum(counts, 0) - counts
     rank = torch.empty_like(by_cell)
-    rank[by_cell] = torch.arange(by_cell.numel()) - starts[cell[by_cell]]
+    rank[by_cell] = torch.arange(by_cell.numel(), device=by_cell.device) - starts[cell[by_cell]]
     quota = math.ceil(config.max_corners / (grid * grid))
     first = order[rank < quota]
     rest = order[rank >= quota]

@@ -19,7 +19,7 @@ _SKEW_BASIS = torch.tensor(
 
 def skew(v: Tensor) -> Tensor:
     """Cross-product matrix ``[v]x`` with ``[v]x w = v × w``: (*, 3) -> (*, 3, 3)."""
-    return (v @ _SKEW_BASIS.to(v.dtype)).reshape(*v.shape[:-1], 3, 3)
+    return (v @ _SKEW_BASIS.to(v)).reshape(*v.shape[:-1], 3, 3)
 
 
 def _safe_angle(squared: Tensor, small: float) -> tuple[Tensor, Tensor]:

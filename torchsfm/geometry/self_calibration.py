@@ -42,13 +42,13 @@ def focal_from_fundamentals(F: Tensor, principal_point: Tensor, prior: float, *,
     def cost(focal: Tensor) -> Tensor:
         return singular_value_gap(F, focal, principal_point).median(dim=1).values
 
-    grid = prior * torch.logspace(-math.log10(spread), math.log10(spread), steps, dtype=torch.float64)
+    grid = prior * torch.logspace(-math.log10(spread), math.log10(spread), steps, dtype=torch.float64, device=F.device)
     best = int(cost(grid).argmin())
     low, high = math.log(float(grid[max(best - 1, 0)])), math.log(float(grid[min(best + 1, steps - 1)]))
     ratio = (math.sqrt(5) - 1) / 2
     for _ in range(refinements):
         a, b = high - ratio * (high - low), low + ratio * (high - low)
-        values = cost(torch.tensor([math.exp(a), math.exp(b)], dtype=torch.float64))
+        values = cost(torch.tensor([math.exp(a), math.exp(b)], dtype=torch.float64, device=F.device))
         if float(values[0]) < float(values[1]):
             high = b
         else:

@@ -64,7 +64,7 @@ def chain_matches(first: PutativeMatches, second: PutativeMatches, num_middle: i
         (T,) positions in ``first`` of the matches whose b-corner is matched into c, and (T,)
         the c-corner of each.
     """
-    onward = torch.full((num_middle,), -1, dtype=torch.long)
+    onward = torch.full((num_middle,), -1, dtype=torch.long, device=second.index1.device)
     onward[second.index1] = second.index2
     third = onward[first.index2]
     seen = torch.nonzero(third >= 0).flatten()

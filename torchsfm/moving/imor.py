@@ -119,7 +119,7 @@ def _seed_and_supports(x1: Tensor, warped: Tensor, parallax: Tensor, config: Mov
         return (f"only {informative.numel()} vector(s) show a residual parallax of {config.min_support_parallax} px "
                 "(a planar or purely rotating scene, or all points moving together)")
     by_norm = informative[torch.argsort(norm[informative])]
-    steps = torch.linspace(0, by_norm.numel() - 1, min(config.seed_candidates, by_norm.numel())).round().long()
+    steps = torch.linspace(0, by_norm.numel() - 1, min(config.seed_candidates, by_norm.numel()), device=norm.device).round().long()
     candidates = by_norm[steps.unique()]
     radius = config.neighbourhood * float((x1.amax(0) - x1.amin(0)).norm())
 
@@ -186,7 +186,7 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
             ransac = dataclasses.replace(config.fundamental.ransac, initial_hypotheses=settings.ransac_initial_hypotheses)
             cascade = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, ransac=ransac))
         consistent, trials = epipolar_consistency(frames[0, imor], frames[1, imor], frames[2, imor], config=cascade, generator=generator)
-        ransac_mask = torch.zeros(N, dtype=torch.bool)
+        ransac_mask = torch.zeros(N, dtype=torch.bool, device=frames.device)
         ransac_mask[imor] = consistent
         background = imor & ransac_mask
     decomposition = outcome.decomposition
@@ -215,8 +215,8 @@ def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Genera
     decomposition = plane_parallax(frames[1], frames[[0, 2]], settings, generator)
     warped, parallax = decomposition.warped, decomposition.parallax
     plane_share = decomposition.plane_inliers.sum().item() / N
-    votes = torch.zeros(N, dtype=torch.long)
-    seed, supports, planar = -1, torch.zeros(0, dtype=torch.long), False
+    votes = torch.zeros(N, dtype=torch.long, device=frames.device)
+    seed, supports, planar = -1, torch.zeros(0, dtype=torch.long, device=frames.device), False
     if not torch.isfinite(warped).all():
         fallback = "the dominant plane maps some points to infinity"
     elif plane_share < settings.min_plane_share:
@@ -224,7 +224,7 @@ def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Genera
     else:
         chosen = _seed_and_supports(frames[1], warped, parallax, settings)
         fallback = chosen if isinstance(chosen, str) else None
-    background = torch.ones(N, dtype=torch.bool)
+    background = torch.ones(N, dtype=torch.bool, device=frames.device)
     if fallback is None:
         seed, supports = chosen
         votes = _votes(supports, warped, parallax, settings)
@@ -237,5 +237,5 @@ def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Genera
             background = norm < settings.min_support_parallax
         if int(background.sum()) < MIN_VECTORS:
             fallback = f"IMOR kept only {int(background.sum())} of {N} vectors"
-            background = torch.ones(N, dtype=torch.bool)
+            background = torch.ones(N, dtype=torch.bool, device=frames.device)
     return _Outcome(decomposition, background, votes, seed, supports, planar, fallback)

@@ -124,11 +124,11 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         return f"no fundamental matrix between frames {r} and {partner}"
     T_inv = torch.linalg.inv(T)
     P_r, P_f = canonical_cameras(T_inv.transpose(-1, -2) @ found.model[0] @ T_inv)  # in normalized coordinates
-    group = torch.zeros(N, dtype=torch.bool)
+    group = torch.zeros(N, dtype=torch.bool, device=tracks.device)
     group[shared] = found.inlier_mask[0]
-    cameras = torch.zeros(F, 3, 4, dtype=tracks.dtype)
+    cameras = torch.zeros(F, 3, 4, dtype=tracks.dtype, device=tracks.device)
     cameras[r], cameras[partner] = P_r, P_f
-    two = torch.zeros(F, dtype=torch.bool)
+    two = torch.zeros(F, dtype=torch.bool, device=tracks.device)
     two[[r, partner]] = True
     X = triangulate_multiview(cameras[two], x[two], (visible[two] & group).double())
     model = ProjectiveResectionModel(scale)
@@ -159,7 +159,7 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         cameras = torch.where(enough[:, None, None], refit, cameras)
     rms = torch.where(tested, (sse / (2 * frames_seen).clamp_min(1)).sqrt(), torch.full_like(sse, float("inf")))
     tolerance = torch.maximum(torch.sqrt(sigma_sq * chi2_quantile(dof, 1 - significance) / (2 * frames_seen).clamp_min(1)),
-                              torch.tensor(threshold, dtype=sse.dtype))
+                              torch.tensor(threshold, dtype=sse.dtype, device=sse.device))
     group = members & tested & (rms <= tolerance)
     return RigidGroup(members=group, rms=rms, frames_seen=frames_seen, cameras=cameras, camera_valid=camera_valid,
                       reference=r, partner=partner)

@@ -123,8 +123,8 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
     share, results = _triplet_votes(tracks, visible, triplets, config, generator)
     voted = ~share.isnan()
     by_votes = voted & (share < settings.min_rejection_share)
-    nan = torch.full((N,), float("nan"), dtype=torch.float64)
-    labels, groups, fallback = torch.full((N,), -1, dtype=torch.long), [], None
+    nan = torch.full((N,), float("nan"), dtype=torch.float64, device=tracks.device)
+    labels, groups, fallback = torch.full((N,), -1, dtype=torch.long, device=tracks.device), [], None
     static_group, rms = -1, nan
     if settings.track_method != "triplets":
         found = _rigid_groups(tracks, visible, config, generator)
@@ -150,8 +150,8 @@ def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, in
                    generator: torch.Generator | None) -> tuple[Tensor, list[MovingObjectRejection]]:
     """IMOR + RANSAC on every triplet's fully seen tracks: (N,) rejection share (NaN: untested)."""
     N = tracks.shape[1]
-    rejected = torch.zeros(N, dtype=torch.float64)
-    tested = torch.zeros(N, dtype=torch.float64)
+    rejected = torch.zeros(N, dtype=torch.float64, device=tracks.device)
+    tested = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     results = []
     for triplet in triplets:
         seen = visible[list(triplet)].all(0)

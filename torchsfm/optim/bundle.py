@@ -77,7 +77,7 @@ class BundleProblem:
         if self.point_index.numel() and (int(self.point_index.min()) < 0 or int(self.point_index.max()) >= P):
             raise InputError(f"point_index must lie in [0, {P})")
         if self.fixed_cameras is None:
-            self.fixed_cameras = torch.zeros(C, dtype=torch.bool)
+            self.fixed_cameras = torch.zeros(C, dtype=torch.bool, device=self.points.device)
 
     @property
     def num_cameras(self) -> int:
@@ -95,8 +95,8 @@ class BundleProblem:
 
     def select_points(self, keep: Tensor) -> BundleProblem:
         """A copy with only the points where ``keep`` (P,) holds, their observations, re-indexed."""
-        new_index = torch.full((self.num_points,), -1, dtype=torch.long)
-        new_index[keep] = torch.arange(int(keep.sum()))
+        new_index = torch.full((self.num_points,), -1, dtype=torch.long, device=keep.device)
+        new_index[keep] = torch.arange(int(keep.sum()), device=keep.device)
         observed = keep[self.point_index]
         return BundleProblem(self.camera_model, self.rotations, self.translations, self.intrinsics, self.points[keep],
                              self.camera_index[observed], new_index[self.point_index[observed]],
@@ -188,13 +188,13 @@ class _SchurLinearization:
         # U: one GEMM per camera over its observations; V: one batched product per track length
         by_camera = torch.split(Jc[problem.camera_order].reshape(-1, dc), problem.camera_rows)
         self.U = torch.stack([rows.T @ rows for rows in by_camera])
-        self.V = torch.zeros(P, 3, 3, dtype=r.dtype)
+        self.V = torch.zeros(P, 3, 3, dtype=r.dtype, device=r.device)
         for observations, _ in problem.track_groups:
             rows = Jp[observations].reshape(observations.shape[0], -1, 3)  # (P_n, 2 n, 3)
             self.V[bundle.point_index[observations[:, 0]]] = rows.transpose(1, 2) @ rows
         self.W = Jc.transpose(1, 2) @ Jp  # (O, dc, 3)
-        g_camera = torch.zeros(C, dc, dtype=r.dtype).index_add_(0, bundle.camera_index, -(Jc.transpose(1, 2) @ r[..., None])[..., 0])
-        g_point = torch.zeros(P, 3, dtype=r.dtype).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
+        g_camera = torch.zeros(C, dc, dtype=r.dtype, device=r.device).index_add_(0, bundle.camera_index, -(Jc.transpose(1, 2) @ r[..., None])[..., 0])
+        g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
         self.gradient = torch.cat([g_camera.flatten(), g_point.flatten()])[None]
         self.diagonal = torch.cat([torch.diagonal(self.U, dim1=1, dim2=2).flatten(), torch.diagonal(self.V, dim1=1, dim2=2).flatten()])[None]
 
@@ -212,12 +212,12 @@ class _SchurLinearization:
         g_point = self.gradient[0, C * dc:].reshape(P, 3)
         c, p = bundle.camera_index, bundle.point_index
         Y = self.W @ V_inverse[p]  # (O, dc, 3) = W V*⁻¹
-        rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype).index_add_(0, c, (Y @ g_point[p][..., None])[..., 0])
+        rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, (Y @ g_point[p][..., None])[..., 0])
         if problem.config.linear_solver == "dense" or (problem.config.linear_solver == "auto" and C * dc <= problem.config.dense_limit):
             delta_camera, ok = self._dense(U, V_inverse, Y, rhs)
         else:
             delta_camera, ok = self._conjugate_gradients(U, V_inverse, Y, rhs)
-        back = g_point - torch.zeros(P, 3, dtype=U.dtype).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
+        back = g_point - torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
         delta_point = (V_inverse @ back[..., None])[..., 0]
         return torch.cat([delta_camera.flatten(), delta_point.flatten()])[None], ok[None]
 
@@ -235,7 +235,7 @@ class _SchurLinearization:
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
         block_numbers = sum(index.numel() for _, index in problem.track_groups) * dc * dc
         if block_numbers * 100 <= (C * dc) ** 2 * 3 * P:
-            blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype)
+            blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype, device=U.device)
             for observations, block_index in problem.track_groups:  # (P_n, n) observation ids, (P_n n n,) S blocks
                 P_n, n = observations.shape
                 left = Y[observations].reshape(P_n, n * dc, 3)
@@ -246,14 +246,14 @@ class _SchurLinearization:
         else:
             c, p = bundle.camera_index, bundle.point_index
             Wt, VWt = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
-            where = (p[:, None], torch.arange(3)[None], c[:, None])
+            where = (p[:, None], torch.arange(3, device=p.device)[None], c[:, None])
             Wt.index_put_(where, self.W.transpose(1, 2))  # each (point, camera) block is observed once
             VWt.index_put_(where, Y.transpose(1, 2))  # V*⁻¹ Wᵀ, only the observed blocks
             reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
         L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
         if int(info) != 0:
             return torch.zeros_like(rhs), torch.tensor(False)
-        return torch.cholesky_solve(rhs.reshape(-1, 1), L).reshape(C, dc), torch.tensor(True)
+        return torch.cholesky_solve(rhs.reshape(-1, 1), L).reshape(C, dc), torch.tensor(True, device=U.device)
 
     def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
         """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks)."""
@@ -262,11 +262,11 @@ class _SchurLinearization:
         c, p = bundle.camera_index, bundle.point_index
 
         def apply(x: Tensor) -> Tensor:  # S x for x (C, dc)
-            through_points = torch.zeros(P, 3, dtype=U.dtype).index_add_(0, p, (self.W.transpose(1, 2) @ x[c][..., None])[..., 0])
-            back = torch.zeros(C, dc, dtype=U.dtype).index_add_(0, c, (Y @ through_points[p][..., None])[..., 0])
+            through_points = torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ x[c][..., None])[..., 0])
+            back = torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, (Y @ through_points[p][..., None])[..., 0])
             return (U @ x[..., None])[..., 0] - back
 
-        diagonal_blocks = U - torch.zeros(C, dc, dc, dtype=U.dtype).index_add_(0, c, Y @ self.W.transpose(1, 2))
+        diagonal_blocks = U - torch.zeros(C, dc, dc, dtype=U.dtype, device=U.device).index_add_(0, c, Y @ self.W.transpose(1, 2))
         preconditioner = torch.linalg.inv(diagonal_blocks)
         x = torch.zeros_like(rhs)
         residual = rhs.clone()
@@ -297,7 +297,7 @@ def track_groups(camera_index: Tensor, point_index: Tensor, num_cameras: int, nu
     groups = []
     for n in torch.unique(counts[counts > 0]).tolist():
         points = torch.nonzero(counts == n).flatten()
-        observations = order[starts[points][:, None] + torch.arange(n)[None]]  # (P_n, n)
+        observations = order[starts[points][:, None] + torch.arange(n, device=order.device)[None]]  # (P_n, n)
         cameras = camera_index[observations]
         groups.append((observations, (cameras[:, :, None] * num_cameras + cameras[:, None, :]).flatten()))
     return groups
@@ -325,7 +325,7 @@ class _BundleLM:
         (fresh allocations of this size cost more in page faults than the product itself)."""
         if self._buffers is None:
             shape = (self.bundle.num_points, 3, self.bundle.num_cameras, self.dc)
-            self._buffers = (torch.zeros(shape, dtype=self.bundle.points.dtype), torch.zeros(shape, dtype=self.bundle.points.dtype))
+            self._buffers = tuple(torch.zeros(shape, dtype=self.bundle.points.dtype, device=self.bundle.points.device) for _ in range(2))
         return self._buffers
 
 

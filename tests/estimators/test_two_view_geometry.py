@@ -140,3 +140,26 @@ class TestBadInput:
         except NotEnoughDataError:
             return
         assert torch.isfinite(estimate.F).all()
+
+
+def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
+    """Three problems of 300, 120 and 5 correspondences padded to 300 in one call: the first two
+    recover F exactly with the planted outliers found, the third (too few rows) reports failure
+    instead of raising; garbage in the padding changes nothing."""
+    scenes = [synthetic_two_view(300, outlier_ratio=0.3, seed=1), synthetic_two_view(120, outlier_ratio=0.5, seed=3)]
+    x1 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
+    x2 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
+    valid = torch.zeros(3, 300, dtype=torch.bool)
+    for b, scene in enumerate(scenes):
+        n = scene.x1.shape[0]
+        x1[b, :n], x2[b, :n], valid[b, :n] = scene.x1, scene.x2, True
+    x1[2, :5], x2[2, :5], valid[2, :5] = scenes[0].x1[:5], scenes[0].x2[:5], True
+    estimate = torchsfm.estimate_fundamental(x1, x2, valid=valid, generator=_generator())
+    assert estimate.success.tolist() == [True, True, False]
+    for b, scene in enumerate(scenes):
+        n = scene.x1.shape[0]
+        assert_close(_aligned(estimate.F[b], scene.F), scene.F, rtol=0, atol=1e-8)
+        assert torch.equal(estimate.inlier_mask[b, :n], scene.is_inlier) and not estimate.inlier_mask[b, n:].any()
+    assert not estimate.inlier_mask[2].any() and torch.isfinite(estimate.F).all()
+    with pytest.raises(ShapeError, match="valid"):
+        torchsfm.estimate_fundamental(x1, x2, valid=valid[:, :10])

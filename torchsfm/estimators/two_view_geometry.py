@@ -35,12 +35,15 @@ class FundamentalEstimate:
         inlier_mask: (B, N) bool, Sampson distance below the threshold under the final F.
         num_trials: (B,) int64, RANSAC minimal samples drawn.
         sampson_rms: (B,) root mean Sampson error of the inliers, pixels.
+        success: (B,) bool, a model with at least 8 inliers was found (always True unless
+            ``valid`` was given: a ragged batch reports failures per problem instead of raising).
     """
 
     F: Tensor
     inlier_mask: Tensor
     num_trials: Tensor
     sampson_rms: Tensor
+    success: Tensor
 
 
 @dataclass
@@ -65,25 +68,36 @@ class RelativePose:
     num_trials: Tensor
 
 
-def _check_correspondences(x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor, bool]:
-    """Validate (N, 2) / (B, N, 2) pairs; return float64 (B, N, 2) copies and 'was unbatched'."""
+def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor, bool, Tensor]:
+    """Validate (N, 2) / (B, N, 2) pairs and an optional (B, N) validity mask; return float64
+    (B, N, 2) copies (zeros where not valid), 'was unbatched' and the (B, N) mask."""
     sizes = check_shapes(x1=(x1, "* N 2"), x2=(x2, "* N 2"))
     if x1.dim() not in (2, 3) or x1.shape[:-2] != x2.shape[:-2]:
         raise ShapeError(f"x1 and x2 must both be (N, 2) or (B, N, 2), got {tuple(x1.shape)} and {tuple(x2.shape)}")
     check_floating(x1=x1, x2=x2)
-    check_finite(x1=x1, x2=x2)
-    check_min_count("x1", sizes["N"], 8, "the 8-point algorithm (correspondences)")
     unbatched = x1.dim() == 2
     x1, x2 = (x.double().reshape(-1, sizes["N"], 2) for x in (x1, x2))
-    for b in range(x1.shape[0]):
-        for name, x in (("x1", x1[b]), ("x2", x2[b])):
-            distinct = count_distinct_rows(x)
-            if distinct < 8:
-                raise DegenerateConfigurationError(
-                    f"{name}{'' if unbatched else f'[{b}]'} has only {distinct} distinct point(s); "
-                    "a fundamental matrix needs at least 8 distinct correspondences"
-                )
-    return x1, x2, unbatched
+    if valid is None:
+        check_finite(x1=x1, x2=x2)
+        check_min_count("x1", sizes["N"], 8, "the 8-point algorithm (correspondences)")
+        mask = torch.ones(x1.shape[:2], dtype=torch.bool, device=x1.device)
+    else:
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.shape != x1.shape[:2]:
+            raise ShapeError(f"valid must be a bool tensor of shape {tuple(x1.shape[:2])}, got "
+                             f"{tuple(valid.shape) if isinstance(valid, Tensor) else type(valid).__name__}")
+        mask = valid
+        check_finite(x1=x1[mask], x2=x2[mask])
+        x1, x2 = (torch.where(mask[..., None], x, 0.0) for x in (x1, x2))
+    if valid is None:
+        for b in range(x1.shape[0]):
+            for name, x in (("x1", x1[b]), ("x2", x2[b])):
+                distinct = count_distinct_rows(x)
+                if distinct < 8:
+                    raise DegenerateConfigurationError(
+                        f"{name}{'' if unbatched else f'[{b}]'} has only {distinct} distinct point(s); "
+                        "a fundamental matrix needs at least 8 distinct correspondences"
+                    )
+    return x1, x2, unbatched, mask
 
 
 def _raise_on_failure(success: Tensor, unbatched: bool) -> None:
@@ -93,27 +107,35 @@ def _raise_on_failure(success: Tensor, unbatched: bool) -> None:
         raise NotEnoughDataError(f"RANSAC found no fundamental matrix with at least 8 inliers{where}")
 
 
-def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch.Generator | None):
-    """RANSAC + optional LM on float64 (B, N, 2) inputs -> (F, inlier mask, trials, success)."""
+def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch.Generator | None, valid: Tensor):
+    """RANSAC + optional LM on float64 (B, N, 2) inputs with a (B, N) validity mask
+    -> (F, inlier mask, trials, success)."""
     data = torch.cat([x1, x2], dim=-1)
-    model = FundamentalModel(data)
-    found = ransac(model, data, config.fundamental.ransac, generator=generator)
-    F, inliers = found.model, found.inlier_mask
+    model = FundamentalModel(data, valid)
+    found = ransac(model, data, config.fundamental.ransac, valid=valid, generator=generator)
+    found_one = found.success & torch.isfinite(found.model).flatten(1).all(-1)
+    stand_in = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=x1.dtype, device=x1.device)  # [e1]x
+    F = torch.where(found_one[:, None, None], found.model, stand_in / stand_in.norm())  # failed problems: finite, unused
     threshold_sq = config.fundamental.ransac.inlier_threshold**2
     for _ in range(config.fundamental.refine_rounds if config.fundamental.refine else 0):
-        support = sampson_error(F, x1, x2) < threshold_sq * config.fundamental.refine_support_factor**2
+        support = valid & found_one[:, None] & (sampson_error(F, x1, x2) < threshold_sq * config.fundamental.refine_support_factor**2)
         F, _ = refine_fundamental(F, x1, x2, support.double(), config.lm)
-    inliers = sampson_error(F, x1, x2) < threshold_sq
-    return F, inliers, found.num_trials, found.success & (inliers.sum(-1) >= 8)
+    inliers = valid & (sampson_error(F, x1, x2) < threshold_sq)
+    success = found_one & (inliers.sum(-1) >= 8) & torch.isfinite(F).flatten(1).all(-1)
+    return F, inliers & success[:, None], found.num_trials, success
 
 
 def estimate_fundamental(
-    x1: Tensor, x2: Tensor, *, config: Config | None = None, generator: torch.Generator | None = None
+    x1: Tensor, x2: Tensor, *, valid: Tensor | None = None, config: Config | None = None,
+    generator: torch.Generator | None = None
 ) -> FundamentalEstimate:
     """Robust fundamental matrix: bucketed RANSAC on the normalized 8-point algorithm, then LM.
 
     Args:
         x1, x2: pixel correspondences (N, 2) or (B, N, 2), N >= 8.
+        valid: optional (B, N) bool: a ragged batch padded to one N (False rows are ignored,
+            whatever they hold). With it, a problem without a model is reported in ``success``
+            instead of raising, so one bad problem does not stop the others.
         config: a :class:`~torchsfm.config.Config`; ``config.fundamental`` and ``config.lm``
             are used. Defaults to the thesis' settings.
         generator: source of RANSAC's random draws (seed it for reproducible results).
@@ -128,12 +150,14 @@ def estimate_fundamental(
     """
     config = config or Config()
     dtype = x1.dtype
-    x1b, x2b, unbatched = _check_correspondences(x1, x2)
-    F, inliers, trials, success = _robust_fundamental(x1b, x2b, config, generator)
-    _raise_on_failure(success, unbatched)
+    x1b, x2b, unbatched, mask = _check_correspondences(x1, x2, valid)
+    F, inliers, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
+    if valid is None:
+        _raise_on_failure(success, unbatched)
     sampson = sampson_error(F, x1b, x2b)
     rms = ((sampson * inliers).sum(-1) / inliers.sum(-1).clamp_min(1)).sqrt()
-    result = FundamentalEstimate(F=F.to(dtype), inlier_mask=inliers, num_trials=trials, sampson_rms=rms.to(dtype))
+    F = torch.where(success[:, None, None], F, 0.0)
+    result = FundamentalEstimate(F=F.to(dtype), inlier_mask=inliers, num_trials=trials, sampson_rms=rms.to(dtype), success=success)
     return _unbatch(result) if unbatched else result
 
 
@@ -162,7 +186,7 @@ def estimate_relative_pose(
     """
     config = config or Config()
     dtype = x1.dtype
-    x1b, x2b, unbatched = _check_correspondences(x1, x2)
+    x1b, x2b, unbatched, mask = _check_correspondences(x1, x2)
     B = x1b.shape[0]
     check_floating(K1=K1, K2=K2)
     check_intrinsics(K1=K1, K2=K2)
@@ -170,7 +194,7 @@ def estimate_relative_pose(
     if K1b.shape[0] != B or K2b.shape[0] != B:
         raise ShapeError(f"K1 and K2 must be (3, 3) or ({B}, 3, 3), got {tuple(K1.shape)} and {tuple(K2.shape)}")
 
-    F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator)
+    F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
     _raise_on_failure(success, unbatched)
     R, t, inliers = calibrated_pose(essential_from_fundamental(F, K1b, K2b), x1b, x2b, K1b, K2b, candidates, config, generator)
     F = fundamental_from_pose(K1b, K2b, R, t)

@@ -141,6 +141,8 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
         "K": model.cameras.K[0].tolist() if model.num_views else None,
         "seconds": {**model.timings, "total": seconds},
         "moving_objects": moving_objects_summary(model),
+        "moving_observations_rejected_per_view": [{"index": index, "rejected": count}
+                                                  for index, count in sorted(model.moving_rejections_per_view.items())],
         "cameras": [{"image": name, "R": model.cameras.R[v].tolist(), "t": model.cameras.t[v].tolist()}
                     for v, name in enumerate(model.image_names)],
         "config": config_to_dict(config),

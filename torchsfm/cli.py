@@ -48,6 +48,10 @@ def _print_moving_objects(summary: dict) -> None:
         note = f" (IMOR skipped: {triplet['fallback']})" if triplet["fallback"] else ""
         print(f"views {triplet['views']}: {triplet['vectors']} vectors, IMOR rejected {triplet['imor_rejected']}, "
               f"RANSAC rejected {triplet['ransac_rejected']} more, {triplet['background']} kept as static{note}")
+    per_view = summary.get("moving_observations_rejected_per_view", [])
+    if per_view:
+        print("observations rejected as moving (or untestable) per view: "
+              + ", ".join(f"{row['index']}: {row['rejected']}" for row in per_view))
 
 
 def _demo(args: argparse.Namespace) -> None:

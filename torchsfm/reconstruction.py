@@ -34,6 +34,8 @@ class Reconstruction:
             triplet (input view indices, the middle one the reference); its vectors are the
             two-view model's matches seen in all three frames, or the multi-view model's tracks
             seen in all three.
+        moving_rejections_per_view: multi-view models with the rejection on: per input view, its
+            track observations rejected as moving (or untestable) by the whole-track decision.
     """
 
     cameras: Camera
@@ -50,6 +52,7 @@ class Reconstruction:
     unregistered: dict[int, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
+    moving_rejections_per_view: dict[int, int] = field(default_factory=dict)
 
     @property
     def num_views(self) -> int:

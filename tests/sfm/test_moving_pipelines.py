@@ -90,5 +90,7 @@ def test_multi_view_with_an_inserted_object(shared_data):
     model, rotation, centre = run(patched, MOVING)
     assert _points_on_object(model, boxes) == 0 and model.num_points > 300
     assert (0, 1, 2) in model.moving_objects
+    rejected = model.moving_rejections_per_view
+    assert sorted(rejected) == [0, 1, 2] and all(count > 0 for count in rejected.values())
     assert rotation <= 1.5 * clean_rotation + 0.01
     assert centre <= 1.5 * clean_centre + 0.0005

@@ -48,7 +48,8 @@ class TrackRejection:
         rms: (N,) RMS reprojection error under the static group's cameras, pixels (NaN where
             not computed or untested): the whole-track evidence.
         groups: the rigid groups found, largest first.
-        triplets: the frame triplets used; results: their :class:`MovingObjectRejection`.
+        triplets: the frame triplets that were tested (seen by at least 12 tracks, a model found);
+        results: their :class:`MovingObjectRejection`, in the same order.
         method: ``triplets``, ``rigid_groups`` or ``both``.
         fallback: why the rigid groups could not be found (the triplet votes then decide), else None.
     """
@@ -120,7 +121,7 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
     for triplet in triplets:
         if len(triplet) != 3 or len(set(triplet)) != 3 or not all(0 <= f < F for f in triplet):
             raise ShapeError(f"triplet {triplet} must name three distinct frames of 0..{F - 1}")
-    share, results = _triplet_votes(tracks, visible, triplets, config, generator)
+    share, tested_triplets, results = _triplet_votes(tracks, visible, triplets, config, generator)
     voted = ~share.isnan()
     by_votes = voted & (share < settings.min_rejection_share)
     nan = torch.full((N,), float("nan"), dtype=torch.float64, device=tracks.device)
@@ -142,17 +143,19 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
         if settings.track_method == "both":
             background &= ~voted | by_votes
     return TrackRejection(background_mask=background, tested=tested, rejection_share=share, group_labels=labels,
-                          static_group=static_group, rms=rms, groups=groups, triplets=list(triplets), results=results,
+                          static_group=static_group, rms=rms, groups=groups, triplets=tested_triplets, results=results,
                           method=settings.track_method, fallback=fallback)
 
 
 def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, int, int]], config: Config,
-                   generator: torch.Generator | None) -> tuple[Tensor, list[MovingObjectRejection]]:
-    """IMOR + RANSAC on every triplet's fully seen tracks: (N,) rejection share (NaN: untested)."""
+                   generator: torch.Generator | None
+                   ) -> tuple[Tensor, list[tuple[int, int, int]], list[MovingObjectRejection]]:
+    """IMOR + RANSAC on every triplet's fully seen tracks: (N,) rejection share (NaN: untested),
+    the triplets tested and their results."""
     N = tracks.shape[1]
     rejected = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     tested = torch.zeros(N, dtype=torch.float64, device=tracks.device)
-    results = []
+    tested_triplets, results = [], []
     for triplet in triplets:
         seen = visible[list(triplet)].all(0)
         if int(seen.sum()) < MIN_VECTORS:
@@ -161,10 +164,11 @@ def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, in
             result = reject_moving_objects(*tracks[list(triplet)][:, seen], config=config, generator=generator)
         except NotEnoughDataError:  # RANSAC found no F on this triplet: it casts no vote
             continue
+        tested_triplets.append(tuple(triplet))
         results.append(result)
         tested[seen] += 1
         rejected[seen] += (~result.background_mask).double()
-    return torch.where(tested > 0, rejected / tested.clamp_min(1), float("nan")), results
+    return torch.where(tested > 0, rejected / tested.clamp_min(1), float("nan")), tested_triplets, results
 
 
 def _rigid_groups(tracks: Tensor, visible: Tensor, config: Config, generator: torch.Generator | None

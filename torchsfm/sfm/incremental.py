@@ -31,7 +31,8 @@ from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsi
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import PutativeMatches, match_corners
-from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects
+from torchsfm.moving.imor import MovingObjectRejection
+from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
@@ -372,6 +373,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     model.view_indices = [kept[v] for v in model.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
+    model.moving_rejections_per_view = {kept[v]: count for v, count in model.moving_rejections_per_view.items()}
     return model
 
 
@@ -406,9 +408,9 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
         report(f"focal length estimated from {len(pairs)} verified pairs: {float(K[0, 0, 0]):.1f} px")
     tracks = build_tracks([c.shape[0] for c in corners], {key: (m.index1, m.index2) for key, m in pairs.items()})
     report(f"{tracks.num_tracks} tracks from {len(pairs)} verified pairs")
-    rejections = {}
+    rejections, rejected_per_view = {}, []
     if config.moving_objects.enabled:
-        tracks, rejections = timed("moving objects", lambda: _reject_moving_tracks(tracks, corners, config, generator))
+        tracks, rejections, rejected_per_view = timed("moving objects", lambda: _reject_moving_tracks(tracks, corners, config, generator))
         report(f"{tracks.num_tracks} tracks kept as static by IMOR + RANSAC")
     (first, second), R, t, _ = timed("initial pair", lambda: _initial_pair(pairs, corners, K, config, generator))
     model = _Model(tracks, corners, raw, K, config)
@@ -463,32 +465,26 @@ def _reconstruct_views(images: list[Tensor], K: Tensor, distortion: Tensor, *, n
         report(f"focal length refined by bundle adjustment: {float(model.K[0, 0, 0]):.1f} px")
     result = _result(model, images, names, unregistered, timings)
     result.moving_objects = rejections
+    result.moving_rejections_per_view = dict(enumerate(rejected_per_view))
     return result
 
 
 def _reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator
-                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection]]:
-    """Keep the tracks that IMOR + RANSAC rejects in fewer than ``min_rejection_share`` of the
-    consecutive view triplets (i, i+1, i+2) that see them; tracks no triplet sees cannot be
-    tested and are dropped too, and triplets seeing too few tracks are skipped. Returns the kept
-    tracks (renumbered) and each tested triplet's result."""
-    pixels = tracks.gather(corners)
-    observation = torch.full((len(corners), tracks.num_tracks), -1, dtype=torch.long)
-    observation[tracks.view, tracks.track] = torch.arange(tracks.view.numel())
-    rejected = torch.zeros(tracks.num_tracks)
-    tested = torch.zeros(tracks.num_tracks)
-    results = {}
-    for first in range(len(corners) - 2):
-        rows = observation[first:first + 3]  # (3, num_tracks)
-        seen = (rows >= 0).all(0)
-        if int(seen.sum()) < MIN_VECTORS:
-            continue
-        result = reject_moving_objects(*pixels[rows[:, seen]], config=config, generator=generator)
-        results[(first, first + 1, first + 2)] = result
-        tested[seen] += 1
-        rejected[seen] += (~result.background_mask).float()
-    static = (tested > 0) & (rejected < config.moving_objects.min_rejection_share * tested)
-    return tracks.subset(static), results
+                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection], list[int]]:
+    """Keep the tracks :func:`~torchsfm.moving.whole_track.reject_moving_objects_in_tracks` keeps
+    (``moving_objects.track_method``; the triplet votes use every consecutive view triplet; tracks
+    it cannot test are dropped too). Returns the kept tracks (renumbered), each tested triplet's
+    result, and per view the number of its observations rejected."""
+    V, T = len(corners), tracks.num_tracks
+    pixels = torch.zeros(V, T, 2, dtype=torch.float64)
+    visible = torch.zeros(V, T, dtype=torch.bool)
+    pixels[tracks.view, tracks.track] = tracks.gather(corners)
+    visible[tracks.view, tracks.track] = True
+    triplets = [(first, first + 1, first + 2) for first in range(V - 2)]
+    decision = reject_moving_objects_in_tracks(pixels, visible, triplets=triplets, config=config, generator=generator)
+    results = dict(zip(decision.triplets, decision.results))
+    rejected_per_view = (visible & ~decision.background_mask[None]).sum(1).tolist()
+    return tracks.subset(decision.background_mask), results, rejected_per_view
 
 
 def _result(model: _Model, images: list[Tensor], names: list[str], unregistered: dict[int, str],

@@ -109,7 +109,7 @@ def test_reconstruct_command_writes_the_model_and_a_summary(shared_data, tmp_pat
     assert {p.name for p in out.iterdir()} == {"model.wrl", "points.ply", "colmap", "summary.json"}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["views_registered"] == 4 and summary["points"] > 500
-    assert set(summary["seconds"]) >= {"corners", "matching", "bundle adjustment", "total"}
+    assert set(summary["seconds"]) >= {"DetectCorners", "MatchPairs", "VerifyPairs", "MapIncrementally", "bundle adjustment", "total"}
     captured = capsys.readouterr()
     assert "registering view" in captured.err and "4 views registered" in captured.out
 

@@ -1,0 +1,51 @@
+"""The N-view pipeline as stages: run a prefix, swap a stage for a user-written one."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+import torchsfm
+from torchsfm.actions import SAMPLE
+from torchsfm.images import read_image
+from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline
+from torchsfm.sfm.view_pairs import putative_matches
+
+K = torch.tensor([[689.87, 0.0, 380.0], [0.0, 691.04, 251.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def _images():
+    return [read_image(SAMPLE / f"000{v}.jpg") for v in (4, 5, 6)]
+
+
+def test_a_prefix_gives_verified_pairs_only():
+    pipeline = default_pipeline()
+    state = pipeline[:3](ViewSet.of(_images(), K))
+    assert state.pairs and state.tracks is None and state.reconstruction is None
+    assert all(int(m.index1.numel()) >= 30 for m in state.pairs.values())
+    assert set(state.timings) == {"DetectCorners", "MatchPairs", "VerifyPairs"}
+
+
+class OnlyConsecutivePairs(nn.Module):
+    """A user's stage in place of MatchPairs: the default matcher, then only pairs (i, i+1)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.config = torchsfm.Config()
+        self.calls = 0
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        self.calls += 1
+        matches = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
+        state.putative = {pair: m for pair, m in matches.items() if pair[1] == pair[0] + 1}
+        return state
+
+
+def test_swapping_a_stage():
+    pipeline = default_pipeline()
+    assert isinstance(pipeline[1], MatchPairs)
+    mine = OnlyConsecutivePairs()
+    pipeline[1] = mine
+    model = torchsfm.reconstruct(_images(), K, pipeline=pipeline)
+    assert mine.calls == 1 and model.num_views == 3 and model.num_points > 300
+    assert "OnlyConsecutivePairs" in model.timings

@@ -1,0 +1,312 @@
+"""The incremental mapper (thesis chapter 4): the growing model, the initial pair, resection and
+triangulation of each next view, bundle adjustment, intrinsics refinement and the result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import Camera, project, projection_matrix
+from torchsfm.config import Config
+from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
+from torchsfm.geometry.triangulation import triangulate_points
+from torchsfm.optim.bundle import BundleProblem, bundle_adjust
+from torchsfm.reconstruction import Reconstruction
+from torchsfm.estimators.two_view_geometry import estimate_relative_pose
+from torchsfm.estimators.absolute_pose import estimate_absolute_pose
+from torchsfm.sfm.tracks import Tracks
+from torchsfm.sfm.view_pairs import PairMatches
+
+FOCAL_REFINEMENT_RANGE = 1.1  # the bundle-adjusted profile searches f / 1.1 .. f × 1.1
+PRINCIPAL_POINT_RANGE = 0.02  # ... and the principal point ± 2% of the image's larger side
+INTRINSICS_REFINEMENT_STEPS = 10
+
+
+def triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
+    """Angle (degrees) between the rays from two centres (3,) to points X (N, 3): (N,)."""
+    a, b = centre1 - X, centre2 - X
+    cosine = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-300)
+    return torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))
+
+
+class MapperState:
+    """The growing reconstruction: poses of registered views and a 3-D point per track."""
+
+    def __init__(self, tracks: Tracks, corners: list[Tensor], raw: list[Tensor], K: Tensor, config: Config) -> None:
+        self.tracks, self.corners, self.K, self.config = tracks, corners, K, config
+        V = len(corners)
+        self.R = torch.eye(3, dtype=torch.float64).repeat(V, 1, 1)
+        self.t = torch.zeros(V, 3, dtype=torch.float64)
+        self.registered = torch.zeros(V, dtype=torch.bool)
+        self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
+        self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
+        self.pixels = tracks.gather(corners)  # (T, 2) undistorted
+        self.raw_pixels = tracks.gather(raw)  # as detected (for colours)
+
+    def centre(self, view: int) -> Tensor:
+        return -self.R[view].T @ self.t[view]
+
+    def projection(self, view: int) -> Tensor:
+        return projection_matrix(self.K[view], self.R[view], self.t[view])
+
+    def observation_errors(self) -> Tensor:
+        """Reprojection error of every track observation in a registered view with a point
+        (+inf elsewhere): (T,)."""
+        view, track = self.tracks.view, self.tracks.track
+        usable = self.registered[view] & self.has_point[track]
+        errors = torch.full((view.numel(),), float("inf"), dtype=torch.float64)
+        if bool(usable.any()):
+            camera = Camera(self.K[view[usable]], self.R[view[usable]], self.t[view[usable]])
+            camera_points = camera.world_to_camera(self.points[track[usable]][:, None])[:, 0]
+            projected = camera.project(self.points[track[usable]][:, None])[:, 0]
+            error = (projected - self.pixels[usable]).norm(dim=-1)
+            errors[usable] = torch.where(camera_points[:, 2] > 0, error, float("inf"))
+        return errors
+
+    def triangulate_new(self, view: int) -> int:
+        """Triangulate the tracks seen by ``view`` and another registered view that have no point
+        yet, each with the partner view of widest baseline; keep the well-conditioned ones."""
+        view_of, track_of = self.tracks.view, self.tracks.track
+        in_view = view_of == view
+        candidates = torch.zeros(self.tracks.num_tracks, dtype=torch.bool)
+        candidates[track_of[in_view]] = True
+        candidates &= ~self.has_point
+        partner_observation = candidates[track_of] & self.registered[view_of] & (view_of != view)
+        if not bool(partner_observation.any()):
+            return 0
+        distances = torch.stack([(self.centre(v) - self.centre(view)).norm() for v in range(len(self.corners))])
+        # for every candidate track: its registered partner observation farthest from the view
+        score = torch.where(partner_observation, distances[view_of], -1.0)
+        best = torch.full((self.tracks.num_tracks,), -1.0, dtype=torch.float64).scatter_reduce(0, track_of, score, "amax")
+        chosen = partner_observation & (score == best[track_of])
+        chosen_tracks, first = torch.unique(track_of[chosen], return_inverse=True)
+        partner_index = torch.full((chosen_tracks.numel(),), -1, dtype=torch.long).scatter_(0, first, torch.nonzero(chosen).flatten())
+        own_index = torch.full((self.tracks.num_tracks,), -1, dtype=torch.long)
+        own_index[track_of[in_view]] = torch.nonzero(in_view).flatten()
+        own_index = own_index[chosen_tracks]
+        added = 0
+        partners = view_of[partner_index]
+        for partner in torch.unique(partners).tolist():
+            mine = partners == partner
+            x_view, x_partner = self.pixels[own_index[mine]], self.pixels[partner_index[mine]]
+            P_view, P_partner = self.projection(view), self.projection(partner)
+            X = triangulate_points(x_partner, x_view, P_partner, P_view, self.config.triangulation)
+            good = self._acceptable(X, [(partner, x_partner), (view, x_view)])
+            tracks = chosen_tracks[mine][good]
+            self.points[tracks], self.has_point[tracks] = X[good], True
+            added += int(good.sum())
+        return added
+
+    def _acceptable(self, X: Tensor, views: list[tuple[int, Tensor]]) -> Tensor:
+        settings = self.config.reconstruction
+        good = torch.isfinite(X).all(-1)
+        for view, pixels in views:
+            camera_points = X @ self.R[view].T + self.t[view]
+            error = (project(self.projection(view), X) - pixels).norm(dim=-1)
+            good &= (camera_points[:, 2] > 0) & (error < settings.max_reprojection_error)
+        angle = triangulation_angle(X, self.centre(views[0][0]), self.centre(views[1][0]))
+        return good & (angle >= settings.min_point_angle)
+
+
+def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor], K: Tensor, config: Config,
+                  generator: torch.Generator) -> tuple[tuple[int, int], Tensor, Tensor, str]:
+    """The first pair (by inlier count) that passes the homography and parallax tests."""
+    settings = config.reconstruction
+    rejected = []
+    for (i, j), match in sorted(pairs.items(), key=lambda item: -item[1].index1.numel()):
+        if match.homography_ratio > settings.max_homography_ratio:
+            rejected.append(f"{i}-{j}: a homography explains {match.homography_ratio:.0%} of its inliers")
+            continue
+        x1, x2 = corners[i][match.index1], corners[j][match.index2]
+        try:
+            pose = estimate_relative_pose(x1, x2, K[i], K[j], config=config, generator=generator)
+        except TorchSfmError as error:
+            rejected.append(f"{i}-{j}: {error}")
+            continue
+        centre2 = -pose.R.T @ pose.t
+        angle = float(triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), centre2).median())
+        if angle < settings.min_initial_angle:
+            rejected.append(f"{i}-{j}: median triangulation angle {angle:.2f} deg")
+            continue
+        return (i, j), pose.R, pose.t, "; ".join(rejected)
+    raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
+
+
+def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None) -> float:
+    """Adjust the registered cameras and the points with their inlier observations (or the
+    ``usable`` (T,) ones), in place, with ``reconstruction.bundle_loss``; returns the final cost
+    per observation (px²)."""
+    if usable is None:
+        usable = model.observation_errors() < config.reconstruction.max_reprojection_error
+    views = torch.nonzero(model.registered).flatten()
+    tracks = torch.nonzero(model.has_point).flatten()
+    camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
+    camera_of[views] = torch.arange(views.numel())
+    point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
+    point_of[tracks] = torch.arange(tracks.numel())
+    problem = BundleProblem(
+        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
+        points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
+        point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
+        fixed_cameras=views == fixed_view,
+    )
+    settings = dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
+    result = bundle_adjust(problem, config=settings)
+    adjusted = result.problem
+    model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
+    return result.final_cost / max(int(usable.sum()), 1)
+
+
+def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> None:
+    """The shared focal length and principal point minimizing the bundle-adjusted reprojection
+    cost: golden-section profiles over log f (± ``FOCAL_REFINEMENT_RANGE``), then cx and cy
+    (± ``PRINCIPAL_POINT_RANGE`` of the image size), then f again, every evaluation a bundle
+    adjustment from the current model over one fixed set of observations; the model ends
+    adjusted at the best values."""
+    start = (model.R.clone(), model.t.clone(), model.points.clone())
+    usable = model.observation_errors() < config.reconstruction.max_reprojection_error  # one set for every K
+    size = 2 * float(model.K[0, :2, 2].max()) + 1
+
+    def cost(K: Tensor) -> float:
+        model.R, model.t, model.points = (tensor.clone() for tensor in start)
+        model.K = K.expand_as(model.K).clone()
+        return bundle(model, config, fixed_view, usable)
+
+    def with_value(K: Tensor, which: str, value: float) -> Tensor:
+        K = K.clone()
+        if which == "f":
+            K[0, 0] = K[1, 1] = math.exp(value)
+        else:
+            K[0 if which == "cx" else 1, 2] = value
+        return K
+
+    K = model.K[0].clone()
+    for which in ("f", "cx", "cy", "f"):
+        if which == "f":
+            centre, half = math.log(float(K[0, 0])), math.log(FOCAL_REFINEMENT_RANGE)
+        else:
+            centre, half = float(K[0 if which == "cx" else 1, 2]), PRINCIPAL_POINT_RANGE * size
+        low, high = centre - half, centre + half
+        ratio = (math.sqrt(5) - 1) / 2
+        a, b = high - ratio * (high - low), low + ratio * (high - low)
+        cost_a, cost_b = cost(with_value(K, which, a)), cost(with_value(K, which, b))
+        for _ in range(INTRINSICS_REFINEMENT_STEPS):
+            if cost_a < cost_b:
+                high, b, cost_b = b, a, cost_a
+                a = high - ratio * (high - low)
+                cost_a = cost(with_value(K, which, a))
+            else:
+                low, a, cost_a = a, b, cost_b
+                b = low + ratio * (high - low)
+                cost_b = cost(with_value(K, which, b))
+        K = with_value(K, which, (low + high) / 2)
+    cost(K)
+
+
+def map_incrementally(state, config: Config) -> Reconstruction:
+    """The incremental mapper on a :class:`~torchsfm.sfm.stages.ViewSet` with verified ``pairs``,
+    ``corners``, ``raw`` corners and ``tracks``: the initial pair, then repeatedly the view that sees
+    most reconstructed tracks (a view that fails is retried after the next registration), bundle
+    adjustment, retriangulation, outlier removal and, when K was estimated, its refinement."""
+    tracks, V = state.tracks, len(state.images)
+    timings = state.timings
+
+    def timed(name: str, function):
+        start = time.perf_counter()
+        value = function()
+        timings[name] = timings.get(name, 0.0) + time.perf_counter() - start
+        return value
+
+    (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(state.pairs, state.corners, state.K, config, state.generator))
+    model = MapperState(tracks, state.corners, state.raw, state.K, config)
+    model.R[second], model.t[second] = R.double(), t.double()
+    model.registered[[first, second]] = True
+    model.triangulate_new(second)
+    state.report(f"initial pair {first}-{second}: {int(model.has_point.sum())} points")
+    unregistered: dict[int, str] = {}  # views that failed since the last registration: retried after the next one
+    since_bundle = 0
+    while True:
+        waiting = [v for v in range(V) if not model.registered[v] and v not in unregistered]
+        if not waiting:
+            break
+        seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
+        view = max(waiting, key=lambda v: int(seen[v]))
+        if int(seen[view]) < config.reconstruction.min_resection_inliers:
+            for v in waiting:
+                unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers})"
+            break
+        state.report(f"registering view {view} ({state.names[view]}) from {int(seen[view])} points")
+        mine = (tracks.view == view) & model.has_point[tracks.track]
+        try:
+            pose = timed("resection", lambda: estimate_absolute_pose(model.points[tracks.track[mine]], model.pixels[mine], model.K[view],
+                                                                     config=config, generator=state.generator))
+        except TorchSfmError as error:
+            unregistered[view] = f"resection failed: {error}"
+            continue
+        if int(pose.inlier_mask.sum()) < config.reconstruction.min_resection_inliers:
+            unregistered[view] = f"resection kept {int(pose.inlier_mask.sum())} inliers (needs {config.reconstruction.min_resection_inliers})"
+            continue
+        model.R[view], model.t[view] = pose.R, pose.t
+        model.registered[view] = True
+        unregistered.clear()  # more points now: every view that failed gets another try
+        timed("triangulation", lambda: model.triangulate_new(view))
+        since_bundle += 1
+        if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
+            timed("bundle adjustment", lambda: bundle(model, config, first))
+            since_bundle = 0
+    state.report(f"bundle adjustment of {int(model.registered.sum())} views and {int(model.has_point.sum())} points")
+    timed("bundle adjustment", lambda: bundle(model, config, first))
+    for _ in range(config.reconstruction.retriangulations):  # the adjusted cameras triangulate tracks the early ones could not
+        for view in torch.nonzero(model.registered).flatten().tolist():
+            timed("triangulation", lambda: model.triangulate_new(view))
+        timed("bundle adjustment", lambda: bundle(model, config, first))
+    # drop outlier observations and weak points, then adjust once more
+    errors = model.observation_errors()
+    inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
+    model.has_point &= inlier_count >= config.reconstruction.min_track_views
+    timed("bundle adjustment", lambda: bundle(model, config, first))
+    if state.estimate_focal:
+        timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first))
+        state.report(f"focal length refined by bundle adjustment: {float(model.K[0, 0, 0]):.1f} px")
+    return build_reconstruction(model, state.images, state.names, unregistered, {})
+
+
+def build_reconstruction(model: MapperState, images: list[Tensor], names: list[str], unregistered: dict[int, str],
+            timings: dict[str, float]) -> Reconstruction:
+    errors = model.observation_errors()
+    tracks = model.tracks
+    keep = errors < model.config.reconstruction.max_reprojection_error
+    views = torch.nonzero(model.registered).flatten()
+    camera_of = torch.full((len(images),), -1, dtype=torch.long)
+    camera_of[views] = torch.arange(views.numel())
+    count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, keep.long())
+    point_tracks = torch.nonzero(model.has_point & (count >= model.config.reconstruction.min_track_views)).flatten()
+    point_of = torch.full((tracks.num_tracks,), -1, dtype=torch.long)
+    point_of[point_tracks] = torch.arange(point_tracks.numel())
+    keep &= point_of[tracks.track] >= 0
+    first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
+        0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
+    stacked = torch.stack([image.expand(3, -1, -1) for image in images])  # (V, 3, H, W)
+    pixel = model.raw_pixels[first_observation].round().long()
+    colours = stacked[tracks.view[first_observation], :, pixel[:, 1], pixel[:, 0]]  # (P, 3), one gather
+    if colours.dtype != torch.uint8:
+        colours = (colours.float() * 255).round().clamp(0, 255).to(torch.uint8)
+    H, W = images[0].shape[-2:]
+    return Reconstruction(
+        cameras=Camera(model.K[views], model.R[views], model.t[views]),
+        image_names=[names[v] for v in views.tolist()],
+        image_sizes=torch.tensor([[W, H]] * views.numel()),
+        points3d=model.points[point_tracks],
+        colors=colours,
+        observation_points=point_of[tracks.track[keep]],
+        observation_views=camera_of[tracks.view[keep]],
+        keypoints=model.pixels[keep],
+        view_indices=views.tolist(),
+        unregistered=unregistered,
+        timings=timings,
+    )
+

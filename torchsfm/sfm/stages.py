@@ -1,0 +1,201 @@
+"""The N-view pipeline as composable stages.
+
+Every stage is an ``nn.Module`` whose ``forward`` takes the :class:`ViewSet` state and returns it
+with its own fields filled; :class:`Pipeline` runs a sequence of them (``nn.Sequential``-like:
+index it, slice it for a prefix, replace or insert a stage) and times each. A stage holds the
+config sections it uses.
+
+    pipeline = default_pipeline(config)       # DetectCorners, MatchPairs, VerifyPairs,
+                                              # SelfCalibrate, BuildTracks, RejectMovingObjects,
+                                              # MapIncrementally
+    state = pipeline[:3](ViewSet.of(images, K))   # verified pairs only
+    pipeline[1] = MyMatcher()                 # any module: ViewSet -> ViewSet
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from torchsfm.camera import undistort_points
+from torchsfm.config import Config, HarrisConfig
+from torchsfm.errors import InputError
+from torchsfm.images import to_grey
+from torchsfm.matching.matcher import PutativeMatches
+from torchsfm.moving.imor import MovingObjectRejection
+from torchsfm.reconstruction import Reconstruction
+from torchsfm.sfm.mapping import map_incrementally
+from torchsfm.sfm.tracks import Tracks, build_tracks
+from torchsfm.sfm.view_pairs import (PairMatches, detect, putative_matches, reject_moving_tracks, self_calibrate,
+                                     verify_pairs)
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class ViewSet:
+    """The state the N-view stages pass along (each fills its own fields).
+
+    Fields:
+        images: V decoded images (3 or 1, H, W), one size.
+        K: (V, 3, 3) intrinsics (replaced by :class:`SelfCalibrate` when ``estimate_focal``).
+        distortion: (V, 2) radial coefficients.
+        names: view names.
+        estimate_focal: K is a placeholder to be estimated.
+        generator: the random source of every RANSAC; report: progress messages.
+        greys: (V, 1, H, W) float images; raw: per view (K_v, 2) detected corners; corners:
+            the same undistorted; putative: matches per view pair; pairs: verified matches;
+            tracks; rejections, rejected_per_view: the moving-object decision; reconstruction:
+            the result; timings: seconds per stage.
+    """
+
+    images: list[Tensor]
+    K: Tensor
+    distortion: Tensor
+    names: list[str]
+    estimate_focal: bool = False
+    generator: torch.Generator = field(default_factory=lambda: torch.Generator().manual_seed(0))
+    report: Progress = field(default=lambda message: None)
+    greys: Tensor | None = None
+    raw: list[Tensor] | None = None
+    corners: list[Tensor] | None = None
+    putative: dict[tuple[int, int], PutativeMatches] | None = None
+    pairs: dict[tuple[int, int], PairMatches] | None = None
+    tracks: Tracks | None = None
+    rejections: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
+    rejected_per_view: list[int] = field(default_factory=list)
+    reconstruction: Reconstruction | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, images: list[Tensor], K: Tensor, *, distortion: Tensor | None = None, names: list[str] | None = None,
+           generator: torch.Generator | None = None, progress: Progress | None = None,
+           estimate_focal: bool = False) -> ViewSet:
+        """A state for decoded images of one size with K (3, 3) or (V, 3, 3)."""
+        V = len(images)
+        sizes = {tuple(image.shape[-2:]) for image in images}
+        if len(sizes) != 1 or any(image.dim() != 3 or image.shape[0] not in (1, 3) for image in images):
+            raise InputError(f"all images must be (3 or 1, H, W) of one size, got {sorted({tuple(i.shape) for i in images})}")
+        K = K.double().expand(V, 3, 3)
+        distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
+        return cls(images=images, K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
+                   estimate_focal=estimate_focal, generator=generator or torch.Generator().manual_seed(0),
+                   report=progress or (lambda message: None))
+
+
+class Pipeline(nn.Sequential):
+    """Stages run in order on a :class:`ViewSet`; each stage's seconds go to ``state.timings``
+    under its class name."""
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        for stage in self:
+            start = time.perf_counter()
+            state = stage(state)
+            name = type(stage).__name__
+            state.timings[name] = state.timings.get(name, 0.0) + time.perf_counter() - start
+        return state
+
+
+class DetectCorners(nn.Module):
+    """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
+
+    def __init__(self, config: HarrisConfig) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        state.greys = torch.stack([to_grey(image) for image in state.images])
+        state.report(f"corners of {len(state.images)} views")
+        state.raw = detect(state.greys, self.config)
+        state.corners = [undistort_points(raw.double(), state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
+        return state
+
+
+class MatchPairs(nn.Module):
+    """Coarse matching of every view pair, pair selection and guided NCC + strength-measure
+    matches of the chosen pairs: fills ``putative``."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        state.putative = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
+        return state
+
+
+class VerifyPairs(nn.Module):
+    """Robust F and the homography test of every matched pair: fills ``pairs``."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        state.pairs = verify_pairs(state.putative, state.corners, self.config, state.generator, state.report)
+        return state
+
+
+class SelfCalibrate(nn.Module):
+    """Without K: the focal length from the verified pairs' F (principal point at the centre)."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        if state.estimate_focal:
+            state.K = self_calibrate(state.pairs, state.images[0].shape[-2:], self.config).expand(len(state.images), 3, 3)
+            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(state.K[0, 0, 0]):.1f} px")
+        return state
+
+
+class BuildTracks(nn.Module):
+    """Chain the verified matches into tracks: fills ``tracks``."""
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        state.tracks = build_tracks([c.shape[0] for c in state.corners],
+                                    {key: (m.index1, m.index2) for key, m in state.pairs.items()})
+        state.report(f"{state.tracks.num_tracks} tracks from {len(state.pairs)} verified pairs")
+        return state
+
+
+class RejectMovingObjects(nn.Module):
+    """With ``moving_objects.enabled``: keep the tracks the whole-track decision keeps."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        if self.config.moving_objects.enabled:
+            state.tracks, state.rejections, state.rejected_per_view = reject_moving_tracks(
+                state.tracks, state.corners, self.config, state.generator)
+            state.report(f"{state.tracks.num_tracks} tracks kept as static")
+        return state
+
+
+class MapIncrementally(nn.Module):
+    """Initial pair, resection and triangulation of every next view, bundle adjustment (and, when
+    K was estimated, its refinement): fills ``reconstruction``."""
+
+    def __init__(self, config: Config) -> None:
+        super().__init__()
+        self.config = config
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        state.reconstruction = map_incrementally(state, self.config)
+        state.reconstruction.moving_objects = state.rejections
+        state.reconstruction.moving_rejections_per_view = dict(enumerate(state.rejected_per_view))
+        return state
+
+
+def default_pipeline(config: Config | None = None) -> Pipeline:
+    """The stages of :func:`torchsfm.reconstruct`."""
+    config = config or Config()
+    return Pipeline(DetectCorners(config.harris), MatchPairs(config), VerifyPairs(config), SelfCalibrate(config),
+                    BuildTracks(), RejectMovingObjects(config), MapIncrementally(config))

@@ -1,0 +1,127 @@
+"""View-pair work of the N-view pipeline: corners, guided putative matches of the chosen pairs,
+their robust verification, self-calibration of the focal length, and the moving-object decision
+on the tracks built from them."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.config import Config, HarrisConfig, RansacConfig
+from torchsfm.estimators.two_view_geometry import estimate_fundamental
+from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
+from torchsfm.features.harris import detect_corners
+from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
+from torchsfm.matching.matcher import PutativeMatches, match_corners
+from torchsfm.moving.imor import MovingObjectRejection
+from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
+from torchsfm.robust.models import HomographyModel
+from torchsfm.robust.ransac import ransac
+from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
+from torchsfm.sfm.tracks import Tracks
+
+Progress = Callable[[str], None]
+DETECTION_CHUNK = 8  # views per batched Harris call
+FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a common camera's field of view)
+
+
+@dataclass
+class PairMatches:
+    index1: Tensor
+    index2: Tensor
+    homography_ratio: float
+    F: Tensor
+
+
+def detect(greys: Tensor, config: HarrisConfig) -> list[Tensor]:
+    """Corners of every view, detected ``DETECTION_CHUNK`` views per batched call (the Harris
+    response's intermediate maps of a whole video would not fit in memory at once)."""
+    corners = []
+    for first in range(0, greys.shape[0], DETECTION_CHUNK):
+        detected = detect_corners(greys[first:first + DETECTION_CHUNK], config)
+        corners += [detected.of_image(b) for b in range(detected.valid.shape[0])]
+    return corners
+
+
+def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator: torch.Generator,
+                      report: Progress) -> dict[tuple[int, int], PutativeMatches]:
+    """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
+    (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
+    on the coarse homography's prediction where it moves corners by more than a quarter of the
+    disc; pairs with fewer than ``min_pair_inliers`` matches are dropped."""
+    features = coarse_features(greys, config.pairs)
+    pairs = select_pairs(pair_scores(features, config.pairs.ncc_threshold), config.pairs)
+    putative = {}
+    for i, j in pairs:
+        report(f"matching views {i} and {j}")
+        predicted = None
+        H = predicted_homography(features, i, j, config.pairs, generator) if config.pairs.guided else None
+        if H is not None:
+            moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
+            if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
+                predicted = moved
+        matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching, predicted)
+        if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
+            putative[(i, j)] = matches
+    return putative
+
+
+def verify_pairs(putative: dict[tuple[int, int], PutativeMatches], corners: list[Tensor], config: Config,
+                  generator: torch.Generator, report: Progress) -> dict[tuple[int, int], PairMatches]:
+    """Robust F of every pair (the undistorted ``corners``), then the homography test on F's
+    inliers; pairs keeping ``min_pair_inliers`` survive. One call per pair: measured faster than
+    one ragged batched call today (the engine's rounds run until the slowest problem stops)."""
+    report(f"verifying {len(putative)} pairs")
+    homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
+    result = {}
+    for (i, j), matches in putative.items():
+        x1, x2 = corners[i][matches.index1], corners[j][matches.index2]
+        try:
+            fundamental = estimate_fundamental(x1, x2, config=config, generator=generator)
+        except TorchSfmError:
+            continue
+        inliers = fundamental.inlier_mask
+        if int(inliers.sum()) < config.reconstruction.min_pair_inliers:
+            continue
+        data = torch.cat([x1[inliers], x2[inliers]], -1)[None]
+        homography = ransac(HomographyModel(data), data, homography_config, generator=generator)
+        ratio = float(homography.inlier_mask.sum()) / float(inliers.sum())
+        result[(i, j)] = PairMatches(matches.index1[inliers], matches.index2[inliers], ratio, fundamental.F)
+    return result
+
+
+def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, int], config: Config) -> Tensor:
+    """K (3, 3) with the principal point at the image centre and the focal length that makes the
+    verified pairs' essential matrices best (pairs a homography explains are left out when
+    others exist: their F does not fix the focal length)."""
+    if not pairs:
+        raise DegenerateConfigurationError("no view pair could be verified, so the focal length cannot be estimated: give K")
+    H, W = size
+    centre = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
+    general = [m.F for m in pairs.values() if m.homography_ratio <= config.reconstruction.max_homography_ratio]
+    F = torch.stack(general or [m.F for m in pairs.values()]).double()
+    return intrinsics(focal_from_fundamentals(F, centre, FOCAL_PRIOR * max(H, W)), centre)
+
+
+def reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator
+                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection], list[int]]:
+    """Keep the tracks :func:`~torchsfm.moving.whole_track.reject_moving_objects_in_tracks` keeps
+    (``moving_objects.track_method``; the triplet votes use every consecutive view triplet; tracks
+    it cannot test are dropped too). Returns the kept tracks (renumbered), each tested triplet's
+    result, and per view the number of its observations rejected."""
+    V, T = len(corners), tracks.num_tracks
+    pixels = torch.zeros(V, T, 2, dtype=torch.float64)
+    visible = torch.zeros(V, T, dtype=torch.bool)
+    pixels[tracks.view, tracks.track] = tracks.gather(corners)
+    visible[tracks.view, tracks.track] = True
+    triplets = [(first, first + 1, first + 2) for first in range(V - 2)]
+    decision = reject_moving_objects_in_tracks(pixels, visible, triplets=triplets, config=config, generator=generator)
+    results = dict(zip(decision.triplets, decision.results))
+    rejected_per_view = (visible & ~decision.background_mask[None]).sum(1).tolist()
+    return tracks.subset(decision.background_mask), results, rejected_per_view
+
+

@@ -25,7 +25,6 @@ from torchsfm.camera import undistort_points
 from torchsfm.config import Config, HarrisConfig
 from torchsfm.errors import InputError
 from torchsfm.images import to_grey
-from torchsfm.matching.matcher import PutativeMatches
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
@@ -48,7 +47,7 @@ class ViewSet:
         estimate_focal: K is a placeholder to be estimated.
         generator: the random source of every RANSAC; report: progress messages.
         greys: (V, 1, H, W) float images; raw: per view (K_v, 2) detected corners; corners:
-            the same undistorted; putative: matches per view pair; pairs: verified matches;
+            the same undistorted; putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
             tracks; rejections, rejected_per_view: the moving-object decision; reconstruction:
             the result; timings: seconds per stage.
     """
@@ -63,7 +62,7 @@ class ViewSet:
     greys: Tensor | None = None
     raw: list[Tensor] | None = None
     corners: list[Tensor] | None = None
-    putative: dict[tuple[int, int], PutativeMatches] | None = None
+    putative: dict[tuple[int, int], tuple[Tensor, Tensor]] | None = None
     pairs: dict[tuple[int, int], PairMatches] | None = None
     tracks: Tracks | None = None
     rejections: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)

@@ -16,7 +16,7 @@ from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.features.harris import detect_corners
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
-from torchsfm.matching.matcher import PutativeMatches, match_corners
+from torchsfm.matching.matcher import match_corners
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.robust.models import HomographyModel
@@ -48,11 +48,13 @@ def detect(greys: Tensor, config: HarrisConfig) -> list[Tensor]:
 
 
 def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator: torch.Generator,
-                      report: Progress) -> dict[tuple[int, int], PutativeMatches]:
+                      report: Progress) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
     """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
     (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
     on the coarse homography's prediction where it moves corners by more than a quarter of the
-    disc; pairs with fewer than ``min_pair_inliers`` matches are dropped."""
+    disc; pairs with fewer than ``min_pair_inliers`` matches are dropped. Only the matched corner
+    indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
+    pair, not by the number of pairs)."""
     features = coarse_features(greys, config.pairs)
     pairs = select_pairs(pair_scores(features, config.pairs.ncc_threshold), config.pairs)
     putative = {}
@@ -66,11 +68,11 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
                 predicted = moved
         matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching, predicted)
         if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
-            putative[(i, j)] = matches
+            putative[(i, j)] = (matches.index1, matches.index2)
     return putative
 
 
-def verify_pairs(putative: dict[tuple[int, int], PutativeMatches], corners: list[Tensor], config: Config,
+def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners: list[Tensor], config: Config,
                   generator: torch.Generator, report: Progress) -> dict[tuple[int, int], PairMatches]:
     """Robust F of every pair (the undistorted ``corners``), then the homography test on F's
     inliers; pairs keeping ``min_pair_inliers`` survive. One call per pair: measured faster than
@@ -78,8 +80,8 @@ def verify_pairs(putative: dict[tuple[int, int], PutativeMatches], corners: list
     report(f"verifying {len(putative)} pairs")
     homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
     result = {}
-    for (i, j), matches in putative.items():
-        x1, x2 = corners[i][matches.index1], corners[j][matches.index2]
+    for (i, j), (index1, index2) in putative.items():
+        x1, x2 = corners[i][index1], corners[j][index2]
         try:
             fundamental = estimate_fundamental(x1, x2, config=config, generator=generator)
         except TorchSfmError:
@@ -90,7 +92,7 @@ def verify_pairs(putative: dict[tuple[int, int], PutativeMatches], corners: list
         data = torch.cat([x1[inliers], x2[inliers]], -1)[None]
         homography = ransac(HomographyModel(data), data, homography_config, generator=generator)
         ratio = float(homography.inlier_mask.sum()) / float(inliers.sum())
-        result[(i, j)] = PairMatches(matches.index1[inliers], matches.index2[inliers], ratio, fundamental.F)
+        result[(i, j)] = PairMatches(index1[inliers], index2[inliers], ratio, fundamental.F)
     return result
 
 

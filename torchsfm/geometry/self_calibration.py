@@ -10,6 +10,7 @@ then golden-section refinement) needs no derivative and no starting point beyond
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -45,12 +46,23 @@ def focal_from_fundamentals(F: Tensor, principal_point: Tensor, prior: float, *,
     grid = prior * torch.logspace(-math.log10(spread), math.log10(spread), steps, dtype=torch.float64, device=F.device)
     best = int(cost(grid).argmin())
     low, high = math.log(float(grid[max(best - 1, 0)])), math.log(float(grid[min(best + 1, steps - 1)]))
+    scalar = lambda log_focal: float(cost(torch.tensor([math.exp(log_focal)], dtype=torch.float64, device=F.device))[0])  # noqa: E731
+    return math.exp(golden_section(scalar, low, high, refinements))
+
+
+def golden_section(cost: Callable[[float], float], low: float, high: float, steps: int) -> float:
+    """The minimizer of a unimodal ``cost`` on [low, high] by golden-section search: ``steps``
+    shrinkings (each one new evaluation), the middle of the last interval."""
     ratio = (math.sqrt(5) - 1) / 2
-    for _ in range(refinements):
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        values = cost(torch.tensor([math.exp(a), math.exp(b)], dtype=torch.float64, device=F.device))
-        if float(values[0]) < float(values[1]):
-            high = b
+    a, b = high - ratio * (high - low), low + ratio * (high - low)
+    cost_a, cost_b = cost(a), cost(b)
+    for _ in range(steps):
+        if cost_a < cost_b:
+            high, b, cost_b = b, a, cost_a
+            a = high - ratio * (high - low)
+            cost_a = cost(a)
         else:
-            low = a
-    return math.exp((low + high) / 2)
+            low, a, cost_a = a, b, cost_b
+            b = low + ratio * (high - low)
+            cost_b = cost(b)
+    return (low + high) / 2

@@ -13,6 +13,7 @@ from torch import Tensor
 from torchsfm.camera import Camera, project, projection_matrix
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
+from torchsfm.geometry.self_calibration import golden_section
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.reconstruction import Reconstruction
@@ -190,20 +191,9 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> No
             centre, half = math.log(float(K[0, 0])), math.log(FOCAL_REFINEMENT_RANGE)
         else:
             centre, half = float(K[0 if which == "cx" else 1, 2]), PRINCIPAL_POINT_RANGE * size
-        low, high = centre - half, centre + half
-        ratio = (math.sqrt(5) - 1) / 2
-        a, b = high - ratio * (high - low), low + ratio * (high - low)
-        cost_a, cost_b = cost(with_value(K, which, a)), cost(with_value(K, which, b))
-        for _ in range(INTRINSICS_REFINEMENT_STEPS):
-            if cost_a < cost_b:
-                high, b, cost_b = b, a, cost_a
-                a = high - ratio * (high - low)
-                cost_a = cost(with_value(K, which, a))
-            else:
-                low, a, cost_a = a, b, cost_b
-                b = low + ratio * (high - low)
-                cost_b = cost(with_value(K, which, b))
-        K = with_value(K, which, (low + high) / 2)
+        best = golden_section(lambda value: cost(with_value(K, which, value)), centre - half, centre + half,
+                              INTRINSICS_REFINEMENT_STEPS)
+        K = with_value(K, which, best)
     cost(K)
 
 

@@ -34,6 +34,8 @@ from torchsfm.io.datasets import MotionTracks, read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.imor import reject_moving_objects
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 
+from imo_comparison import opencv_usac  # the OpenCV baseline of examples/imo_comparison.py
+
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NOT_TRANSLATING = {"cars2_07", "three-cars"}  # camera effectively static or background unreliable
 NON_RIGID = {"arm", "articulated", "dancing"}
@@ -54,19 +56,6 @@ def translating_hopkins(data: Path) -> list[Path]:
     return folders
 
 
-def opencv_ransac(triplet: torch.Tensor) -> torch.Tensor | None:
-    """Inliers of OpenCV USAC_MAGSAC F on the pairs (1, 0), (1, 2), (0, 2) of a (3, N, 2) triplet."""
-    try:
-        import cv2
-    except ImportError:
-        return None
-    keep = torch.ones(triplet.shape[1], dtype=torch.bool)
-    for a, b in ((1, 0), (1, 2), (0, 2)):
-        _, mask = cv2.findFundamentalMat(triplet[a].numpy(), triplet[b].numpy(), cv2.USAC_MAGSAC, 1.0, 0.99, 10000)
-        keep &= torch.from_numpy(mask.ravel().astype(bool)) if mask is not None else torch.zeros_like(keep)
-    return keep
-
-
 def figures(background: torch.Tensor, labels: torch.Tensor) -> tuple[int, int, int, int]:
     """(moving kept, moving, background rejected, background)."""
     moving = labels != 0
@@ -81,7 +70,7 @@ def evaluate(sequence: MotionTracks, config: Config) -> tuple[dict[str, tuple[in
     seen = visible[[0, k, 2 * k]].all(0)
     triplet = tracks[[0, k, 2 * k]][:, seen]
     rows: dict[str, tuple[int, int, int, int] | None] = {}
-    usac = opencv_ransac(triplet)
+    usac = opencv_usac(triplet)
     rows["OpenCV RANSAC"] = None if usac is None else figures(usac, labels[seen])
     cascade = reject_moving_objects(*triplet, config=config, generator=torch.Generator().manual_seed(0))
     rows["IMOR + RANSAC"] = figures(cascade.background_mask, labels[seen])

@@ -15,7 +15,6 @@ config sections it uses.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -29,10 +28,9 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (PairMatches, detect, putative_matches, reject_moving_tracks, self_calibrate,
+from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, putative_matches, reject_moving_tracks, self_calibrate,
                                      verify_pairs)
 
-Progress = Callable[[str], None]
 
 
 @dataclass
@@ -99,12 +97,19 @@ class Pipeline(nn.Sequential):
         return state
 
 
-class DetectCorners(nn.Module):
-    """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
+class ConfiguredStage(nn.Module):
+    """A stage holding the config (section) it uses; ``repr`` shows it."""
 
-    def __init__(self, config: HarrisConfig) -> None:
+    def __init__(self, config: Config | HarrisConfig) -> None:
         super().__init__()
         self.config = config
+
+    def extra_repr(self) -> str:
+        return type(self.config).__name__
+
+
+class DetectCorners(ConfiguredStage):
+    """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey(image) for image in state.images])
@@ -114,37 +119,25 @@ class DetectCorners(nn.Module):
         return state
 
 
-class MatchPairs(nn.Module):
+class MatchPairs(ConfiguredStage):
     """Coarse matching of every view pair, pair selection and guided NCC + strength-measure
     matches of the chosen pairs: fills ``putative``."""
-
-    def __init__(self, config: Config) -> None:
-        super().__init__()
-        self.config = config
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.putative = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
         return state
 
 
-class VerifyPairs(nn.Module):
+class VerifyPairs(ConfiguredStage):
     """Robust F and the homography test of every matched pair: fills ``pairs``."""
-
-    def __init__(self, config: Config) -> None:
-        super().__init__()
-        self.config = config
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.pairs = verify_pairs(state.putative, state.corners, self.config, state.generator, state.report)
         return state
 
 
-class SelfCalibrate(nn.Module):
+class SelfCalibrate(ConfiguredStage):
     """Without K: the focal length from the verified pairs' F (principal point at the centre)."""
-
-    def __init__(self, config: Config) -> None:
-        super().__init__()
-        self.config = config
 
     def forward(self, state: ViewSet) -> ViewSet:
         if state.estimate_focal:
@@ -163,12 +156,8 @@ class BuildTracks(nn.Module):
         return state
 
 
-class RejectMovingObjects(nn.Module):
+class RejectMovingObjects(ConfiguredStage):
     """With ``moving_objects.enabled``: keep the tracks the whole-track decision keeps."""
-
-    def __init__(self, config: Config) -> None:
-        super().__init__()
-        self.config = config
 
     def forward(self, state: ViewSet) -> ViewSet:
         if self.config.moving_objects.enabled:
@@ -178,13 +167,9 @@ class RejectMovingObjects(nn.Module):
         return state
 
 
-class MapIncrementally(nn.Module):
+class MapIncrementally(ConfiguredStage):
     """Initial pair, resection and triangulation of every next view, bundle adjustment (and, when
     K was estimated, its refinement): fills ``reconstruction``."""
-
-    def __init__(self, config: Config) -> None:
-        super().__init__()
-        self.config = config
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.reconstruction = map_incrementally(state, self.config)

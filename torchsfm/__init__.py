@@ -10,6 +10,7 @@ Stable entry points (outside code calls these):
 * :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
 * :func:`reject_moving_objects` — IMOR + RANSAC on points tracked over three frames.
 * :func:`reject_moving_objects_in_tracks` — the same over whole tracks with gaps.
+* :func:`segment_motions` — every independent rigid motion among tracks (number found).
 * :func:`detect_chessboard`, :func:`calibrate_camera` — chessboard corners and Zhang's calibration.
 """
 
@@ -27,6 +28,7 @@ from torchsfm.errors import (
 )
 from torchsfm.geometry.triangulation import TRIANGULATION_METHODS, triangulate
 from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects
+from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.whole_track import TrackRejection, reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
@@ -54,6 +56,7 @@ __all__ = [
     "DegenerateConfigurationError",
     "FundamentalEstimate",
     "InputError",
+    "MotionSegmentation",
     "MovingObjectRejection",
     "NotEnoughDataError",
     "Reconstruction",
@@ -75,6 +78,7 @@ __all__ = [
     "reconstruct",
     "reject_moving_objects",
     "reject_moving_objects_in_tracks",
+    "segment_motions",
     "triangulate",
     "with_overrides",
 ]

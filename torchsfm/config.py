@@ -452,14 +452,79 @@ class MovingObjectsConfig:
         _require(self.planar_background_ratio > 0, "planar_background_ratio", self.planar_background_ratio, "must be > 0")
         _require(0 < self.planar_background_share <= 1, "planar_background_share", self.planar_background_share, "must lie in (0, 1]")
         _require(self.ransac_initial_hypotheses >= 1, "ransac_initial_hypotheses", self.ransac_initial_hypotheses, "must be >= 1")
-        _require(self.track_method in ("triplets", "rigid_groups", "both"), "track_method", self.track_method,
-                 "one of triplets, rigid_groups, both")
+        _require(self.track_method in ("triplets", "rigid_groups", "both", "segmentation"), "track_method",
+                 self.track_method, "one of triplets, rigid_groups, both, segmentation")
         _require(self.max_motions >= 1, "max_motions", self.max_motions, "must be >= 1")
         _require(self.min_group_tracks >= 6, "min_group_tracks", self.min_group_tracks, "must be >= 6 (a camera needs 6 points)")
         _require(self.track_tolerance > 0, "track_tolerance", self.track_tolerance, "must be > 0")
         _require(0 < self.track_significance < 1, "track_significance", self.track_significance, "must lie in (0, 1)")
         _require(self.track_refinements >= 0, "track_refinements", self.track_refinements, "must be >= 0")
         _require(0 < self.min_rejection_share <= 1, "min_rejection_share", self.min_rejection_share, "must lie in (0, 1]")
+
+
+@dataclass(frozen=True)
+class SegmentationConfig:
+    """Motion segmentation by preference clustering (:mod:`torchsfm.moving.segmentation`).
+
+    Each round samples ``hypotheses`` models of every kind in ``models`` (``fundamental``: an
+    8-point F over every pair of ``sample_frames`` frames; ``affine``: the affine-camera
+    trajectory subspace of 4 tracks over ``affine_frames`` frames). The first round draws a share
+    ``local_share`` of the samples among a seed track's ``neighbours`` nearest tracks; the
+    ``guided_rounds`` that follow draw them in proportion to the previous round's similarity. A
+    track prefers the ``preference_share`` of its hypotheses with the smallest residuals (ranks:
+    no noise threshold); the Tanimoto affinity
+    keeps each track's ``links`` strongest links. Tracks whose ``support`` most similar tracks are
+    on average at most ``outlier_factor`` times as similar as chance are outliers. Spectral
+    k-means cuts the rest into ``pieces`` (``restarts`` batched restarts of
+    ``kmeans_iterations``), merged by link strength; the number of motions (static scene
+    included, at most ``max_motions``) is the one before the largest drop of the merge links
+    (links below ``link_floor`` count as none; one motion if no drop reaches
+    ``min_link_drop``). Tracks seen in fewer than ``min_frames`` frames are left unassigned.
+    """
+
+    hypotheses: int = 2000
+    models: str = "fundamental,affine"
+    sample_frames: int = 3
+    affine_frames: int = 5
+    local_share: float = 0.5
+    neighbours: int = 24
+    preference_share: float = 0.1
+    links: int = 24
+    guided_rounds: int = 2
+    max_motions: int = 6
+    pieces: int = 20
+    link_floor: float = 0.005
+    support: int = 8
+    outlier_factor: float = 3.0
+    min_link_drop: float = 2.0
+    restarts: int = 10
+    kmeans_iterations: int = 30
+    min_frames: int = 3
+
+    @property
+    def model_kinds(self) -> list[str]:
+        """``models`` as a list."""
+        return [kind.strip() for kind in self.models.split(",") if kind.strip()]
+
+    def __post_init__(self) -> None:
+        _require(self.hypotheses >= 10, "hypotheses", self.hypotheses, "must be >= 10")
+        _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine"}, "models", self.models,
+                 "a comma-separated list of fundamental, affine")
+        _require(self.sample_frames >= 2, "sample_frames", self.sample_frames, "must be >= 2")
+        _require(0 <= self.local_share <= 1, "local_share", self.local_share, "must lie in [0, 1]")
+        _require(self.neighbours >= 8, "neighbours", self.neighbours, "must be >= 8 (a sample is 8 tracks)")
+        _require(0 < self.preference_share < 1, "preference_share", self.preference_share, "must lie in (0, 1)")
+        _require(self.max_motions >= 1, "max_motions", self.max_motions, "must be >= 1")
+        _require(self.guided_rounds >= 0, "guided_rounds", self.guided_rounds, "must be >= 0")
+        _require(self.links >= 1, "links", self.links, "must be >= 1")
+        _require(self.pieces >= self.max_motions, "pieces", self.pieces, "must be >= max_motions")
+        _require(self.link_floor > 0, "link_floor", self.link_floor, "must be > 0")
+        _require(self.min_link_drop >= 1, "min_link_drop", self.min_link_drop, "must be >= 1")
+        _require(self.support >= 1, "support", self.support, "must be >= 1")
+        _require(self.outlier_factor > 1, "outlier_factor", self.outlier_factor, "must be > 1")
+        _require(self.restarts >= 1, "restarts", self.restarts, "must be >= 1")
+        _require(self.kmeans_iterations >= 1, "kmeans_iterations", self.kmeans_iterations, "must be >= 1")
+        _require(self.min_frames >= 2, "min_frames", self.min_frames, "must be >= 2")
 
 
 @dataclass(frozen=True)
@@ -540,6 +605,7 @@ class Config:
     pairs: PairsConfig = field(default_factory=PairsConfig)
     reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
     moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
 
 

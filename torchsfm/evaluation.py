@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import torch
@@ -44,3 +45,29 @@ def camera_errors(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -> Camer
     relative = rotation_angle(R[pairs[0]] @ R[pairs[1]].transpose(-1, -2), R_true[pairs[0]] @ R_true[pairs[1]].transpose(-1, -2))
     extent = float((true_centres.amax(0) - true_centres.amin(0)).norm())
     return CameraErrors(centre=centre, extent=extent, rotation=rotation, relative_rotation=relative)
+
+
+def misclassification(labels: Tensor, truth: Tensor) -> float:
+    """Share of the N points whose (N,) label disagrees with the (N,) ground truth under the best
+    one-to-one matching of label values to truth values (the motion-segmentation measure of
+    Tron & Vidal, 2007). A label of -1 (unassigned) is a class of its own: it matches a truth of
+    -1 (outliers, where the ground truth has them) and is wrong otherwise; labels left without a
+    partner are wrong."""
+    found = sorted(set(labels.tolist()) - {-1})
+    true = sorted(set(truth.tolist()) - {-1})
+    overlap = torch.tensor([[int(((labels == a) & (truth == b)).sum()) for b in true] for a in found],
+                           dtype=torch.long).reshape(len(found), len(true))
+    agree = int(((labels == -1) & (truth == -1)).sum()) + _best_assignment(overlap)
+    return 1.0 - agree / max(truth.numel(), 1)
+
+
+def _best_assignment(overlap: Tensor) -> int:
+    """Largest total of a (A, B) table over one-to-one row-column matchings (exhaustive over the
+    smaller side's choices: motion counts are small)."""
+    if overlap.shape[0] > overlap.shape[1]:
+        overlap = overlap.T
+    rows, columns = overlap.shape
+    best = 0
+    for chosen in itertools.permutations(range(columns), rows):
+        best = max(best, sum(int(overlap[r, c]) for r, c in enumerate(chosen)))
+    return best

@@ -258,7 +258,7 @@ class MovingObjectScene:
 
 def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
                            object_points: int = 60, outlier_fraction: float = 0.1, noise: float = 0.3,
-                           plane_share: float = 0.5) -> MovingObjectScene:
+                           plane_share: float = 0.5, static_camera: bool = False) -> MovingObjectScene:
     """A seeded scene for moving-object rejection (640×480, f = 800 px).
 
     The background is a wall (a share ``plane_share`` of its points, the dominant plane) and
@@ -276,6 +276,8 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     R, t = [torch.eye(3, dtype=torch.float64)], [torch.zeros(3, dtype=torch.float64)]
     step = torch.tensor([0.5, 0.05, 0.15], dtype=torch.float64) + _uniform((3,), -0.1, 0.1, g)
     spin = _uniform((3,), -1.5, 1.5, g) * math.pi / 180
+    if static_camera:
+        step, spin = torch.zeros_like(step), torch.zeros_like(spin)
     for _ in range(num_frames - 1):
         R.append(axis_angle_to_rotation(spin) @ R[-1])
         t.append(axis_angle_to_rotation(spin) @ t[-1] - step)

@@ -206,6 +206,7 @@ class MotionTracks:
         labels: (N,) int64: 0 the static background, 1, 2, ... the moving objects.
         image_size: (width, height).
         visible: (F, N) bool, where each track is seen (all True for Hopkins155).
+        has_outliers: whether ``labels`` marks gross outliers with -1 (AdelaideRMF).
     """
 
     name: str
@@ -213,6 +214,7 @@ class MotionTracks:
     labels: Tensor
     image_size: tuple[int, int]
     visible: Tensor | None = None
+    has_outliers: bool = False
 
     def __post_init__(self) -> None:
         if self.visible is None:
@@ -275,3 +277,21 @@ def read_kt3dmoseg(folder: str | Path) -> MotionTracks:
     labels = _relabel(groups, int(torch.bincount(groups).argmax()))
     return MotionTracks(name=folder.name.removesuffix("_Tracks"), tracks=tracks, labels=labels, image_size=(1242, 375),
                         visible=visible)
+
+
+def read_adelaidermf(path: str | Path) -> MotionTracks:
+    """An AdelaideRMF fundamental-matrix scene ``<scene>.mat`` (needs SciPy) as two-frame tracks:
+    the matches (2, N, 2) in pixels (MATLAB's 1-based origin moved to 0), labels 0, 1, ... for
+    the rigid structures in the order stored and -1 for the gross outliers
+    (``adelaidermf_F/PROVENANCE.md``). Structure 0 is not a "static scene": two views of
+    independently moved objects have none."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no AdelaideRMF scene {path}")
+    mat = _load_mat(path)
+    data = torch.from_numpy(mat["data"].astype("float64"))  # (6, N)
+    tracks = torch.stack([data[0:2].T, data[3:5].T]) - 1.0
+    labels = torch.from_numpy(mat["label"].astype("int64")).flatten() - 1
+    height, width = mat["img1"].shape[:2]
+    return MotionTracks(name=path.stem, tracks=tracks.contiguous(), labels=labels, image_size=(int(width), int(height)),
+                        has_outliers=True)

@@ -35,9 +35,9 @@ from torch import Tensor
 
 from torchsfm.config import Config, MovingObjectsConfig
 from torchsfm.errors import NotEnoughDataError
+from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.moving.parallax import PlaneParallax, plane_parallax
 from torchsfm.moving.rigidity import rigidity_residuals
-from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.validation import check_finite, check_floating, check_shapes
 
 MIN_VECTORS = 12  # the quadratic flow needs 4 points; RANSAC on it and on F needs clearly more

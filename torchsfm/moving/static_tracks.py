@@ -36,8 +36,11 @@ from torch import Tensor
 
 from torchsfm.config import RansacConfig
 from torchsfm.geometry.normalization import hartley_normalize
-from torchsfm.geometry.projective import (canonical_cameras, reprojection_squared,
-                                          triangulate_multiview)
+from torchsfm.geometry.projective import (
+    canonical_cameras,
+    reprojection_squared,
+    triangulate_multiview,
+)
 from torchsfm.robust.models import FundamentalModel, ProjectiveResectionModel
 from torchsfm.robust.ransac import ransac
 

@@ -12,6 +12,10 @@ Two kinds of evidence, combined by ``moving_objects.track_method``:
   triplet saw: the group covering most cells of an 8×8 grid over the image, i.e. the scene
   surrounds the objects). Every track of the static group is background.
 * ``both`` — background for both.
+* ``segmentation`` — every rigid motion is segmented first
+  (:func:`torchsfm.moving.segmentation.segment_motions`, the number of motions found by the
+  method); the static scene is the motion the triplet votes reject least (ties: the one covering
+  most of the image), and every track of it is background.
 
 A track seen in fewer than three frames cannot be judged: it is reported as untested and not
 kept as background.
@@ -25,11 +29,11 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import Config
-from torchsfm.errors import InputError, NotEnoughDataError, ShapeError, TorchSfmError
+from torchsfm.errors import NotEnoughDataError, ShapeError, TorchSfmError
 from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects
+from torchsfm.moving.segmentation import MotionSegmentation, grid_coverage, segment_motions
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group
-
-COVERAGE_GRID = 8
+from torchsfm.moving.track_input import check_tracks
 
 
 @dataclass
@@ -50,7 +54,8 @@ class TrackRejection:
         groups: the rigid groups found, largest first.
         triplets: the frame triplets that were tested (seen by at least 12 tracks, a model found);
         results: their :class:`MovingObjectRejection`, in the same order.
-        method: ``triplets``, ``rigid_groups`` or ``both``.
+        method: ``triplets``, ``rigid_groups``, ``both`` or ``segmentation``.
+        segmentation: the :class:`MotionSegmentation` (``segmentation`` only, else None).
         fallback: why the rigid groups could not be found (the triplet votes then decide), else None.
     """
 
@@ -65,33 +70,7 @@ class TrackRejection:
     results: list[MovingObjectRejection]
     method: str
     fallback: str | None
-
-
-def check_tracks(tracks: Tensor, visible: Tensor | None) -> tuple[Tensor, Tensor]:
-    """Validate (F, N, 2) tracks and an (F, N) bool visibility; return float64 tracks (zeros
-    where not visible) and the visibility."""
-    if not isinstance(tracks, Tensor) or tracks.dim() != 3 or tracks.shape[-1] != 2:
-        raise ShapeError(f"tracks must be an (F, N, 2) tensor, got {tuple(tracks.shape) if isinstance(tracks, Tensor) else type(tracks).__name__}")
-    if not tracks.is_floating_point():
-        raise InputError(f"tracks must be floating point pixels, got {tracks.dtype}")
-    F, N, _ = tracks.shape
-    if F < 3:
-        raise NotEnoughDataError(f"the rigidity of a track needs three frames, got {F}")
-    if visible is None:
-        visible = torch.ones(F, N, dtype=torch.bool, device=tracks.device)
-    if not isinstance(visible, Tensor) or visible.shape != (F, N):
-        raise ShapeError(f"visible must be ({F}, {N}) like tracks' first two dimensions, got "
-                         f"{tuple(visible.shape) if isinstance(visible, Tensor) else type(visible).__name__}")
-    if visible.dtype != torch.bool:
-        raise InputError(f"visible must be a bool tensor, got {visible.dtype}")
-    bad = visible & ~torch.isfinite(tracks).all(-1)
-    if bool(bad.any()):
-        f, n = (int(v) for v in torch.nonzero(bad)[0])
-        raise InputError(f"tracks hold {int(bad.sum())} non-finite positions where visible (first: frame {f}, track {n})")
-    long_enough = int((visible.sum(0) >= 3).sum())
-    if long_enough < MIN_VECTORS:
-        raise NotEnoughDataError(f"only {long_enough} tracks are seen in three frames or more (needs {MIN_VECTORS})")
-    return torch.where(visible[..., None], tracks.double(), 0.0), visible
+    segmentation: MotionSegmentation | None = None
 
 
 def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = None, *,
@@ -126,8 +105,12 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
     by_votes = voted & (share < settings.min_rejection_share)
     nan = torch.full((N,), float("nan"), dtype=torch.float64, device=tracks.device)
     labels, groups, fallback = torch.full((N,), -1, dtype=torch.long, device=tracks.device), [], None
-    static_group, rms = -1, nan
-    if settings.track_method != "triplets":
+    static_group, rms, segmentation = -1, nan, None
+    if settings.track_method == "segmentation":
+        segmentation = segment_motions(tracks, visible, config=config.segmentation, generator=generator)
+        labels = segmentation.labels
+        static_group = _static_group(tracks, visible, labels, segmentation.num_motions, share)
+    elif settings.track_method != "triplets":
         found = _rigid_groups(tracks, visible, config, generator)
         if isinstance(found, str):
             fallback = found
@@ -137,6 +120,8 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
             rms = torch.where(groups[static_group].rms.isfinite(), groups[static_group].rms, nan)
     if settings.track_method == "triplets" or fallback is not None:
         background, tested = by_votes, voted
+    elif segmentation is not None:
+        background, tested = labels == static_group, labels >= 0
     else:
         tested = visible.sum(0) >= 3
         background = labels == static_group
@@ -144,7 +129,7 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
             background &= ~voted | by_votes
     return TrackRejection(background_mask=background, tested=tested, rejection_share=share, group_labels=labels,
                           static_group=static_group, rms=rms, groups=groups, triplets=tested_triplets, results=results,
-                          method=settings.track_method, fallback=fallback)
+                          method=settings.track_method, fallback=fallback, segmentation=segmentation)
 
 
 def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, int, int]], config: Config,
@@ -203,15 +188,10 @@ def _rigid_groups(tracks: Tensor, visible: Tensor, config: Config, generator: to
 def _static_group(tracks: Tensor, visible: Tensor, labels: Tensor, num_groups: int, share: Tensor) -> int:
     """The group the triplet votes reject least; ties and unvoted groups go to the group
     covering most cells of a grid over the image."""
-    points = tracks[visible]
-    low, high = points.amin(0), points.amax(0)
-    cell = ((tracks - low) / (high - low).clamp_min(1e-9) * COVERAGE_GRID).long().clamp(0, COVERAGE_GRID - 1)
-    cell_index = cell[..., 0] * COVERAGE_GRID + cell[..., 1]  # (F, N)
+    coverage = grid_coverage(tracks, visible, labels, num_groups)
     scores = []
     for g in range(num_groups):
-        mine = labels == g
-        coverage = int(torch.unique(cell_index[:, mine][visible[:, mine]]).numel())
-        voted = mine & ~share.isnan()
+        voted = (labels == g) & ~share.isnan()
         rejection = float(share[voted].mean()) if bool(voted.any()) else 1.0
-        scores.append((rejection, -coverage))
+        scores.append((rejection, -int(coverage[g])))
     return min(range(num_groups), key=lambda g: scores[g])

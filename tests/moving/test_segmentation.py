@@ -1,0 +1,129 @@
+"""Motion segmentation (torchsfm.segment_motions): synthetic multi-body scenes with ground truth,
+gaps, degenerate cases, bad input, and real labelled tracks (Hopkins155, KT3DMoSeg)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchsfm import segment_motions
+from torchsfm.config import SegmentationConfig
+from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
+from torchsfm.evaluation import misclassification
+from torchsfm.testing import synthetic_moving_scene
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+
+def scene(seed: int, objects: int, **kwargs):
+    """A 5-frame scene whose objects stay in view, 0.5 px noise."""
+    return synthetic_moving_scene(seed, num_frames=5, num_objects=objects, object_points=60, noise=0.5, **kwargs)
+
+
+def test_misclassification_matches_labels_one_to_one():
+    truth = torch.tensor([0, 0, 0, 1, 1, 2, -1])
+    assert misclassification(torch.tensor([5, 5, 5, 3, 3, 4, -1]), truth) == 0.0
+    assert misclassification(torch.tensor([1, 1, 1, 1, 1, 2, -1]), truth) == pytest.approx(2 / 7)
+    assert misclassification(torch.tensor([0, 0, 0, 1, 1, 2, 2]), truth) == pytest.approx(1 / 7)
+    assert misclassification(torch.tensor([0, 0, -1, 1, 1, 2, -1]), truth) == pytest.approx(1 / 7)
+
+
+@pytest.mark.parametrize("objects", [1, 2, 3])
+def test_segments_every_object_and_finds_their_number(objects):
+    """0.5 px noise, 10 % outlier tracks: the number of motions is found, the static scene is
+    label 0, and at most 2 % of the inlier tracks are misclassified."""
+    data = scene(4, objects)
+    result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
+    inliers = data.labels >= 0
+    assert result.num_motions == objects + 1
+    assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
+    assert float((result.labels[data.labels == 0] == 0).double().mean()) >= 0.98
+    assert result.sizes.shape == result.coverage.shape == (objects + 1,)
+
+
+def test_given_number_of_motions_is_used():
+    data = scene(3, 2)
+    result = segment_motions(data.tracks, num_motions=3, generator=torch.Generator().manual_seed(0))
+    assert result.num_motions == 3
+    with pytest.raises(NotEnoughDataError, match="motions"):
+        segment_motions(data.tracks, num_motions=0)
+
+
+def test_a_static_scene_is_one_motion():
+    data = scene(3, 0)
+    result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
+    assert result.num_motions == 1
+    assert bool((result.labels[data.labels == 0] == 0).all())
+
+
+def test_static_camera_with_a_moving_object():
+    """The background does not move at all in the image: still one motion, the object another."""
+    data = scene(3, 1, static_camera=True)
+    result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
+    inliers = data.labels >= 0
+    assert result.num_motions == 2
+    assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
+
+
+def test_tracks_with_gaps_and_short_tracks_are_unassigned():
+    data = scene(3, 1)
+    F, N = data.tracks.shape[:2]
+    generator = torch.Generator().manual_seed(1)
+    visible = torch.rand(F, N, generator=generator) > 0.15
+    short = torch.arange(N) % 10 == 0
+    visible[2:, short] = False  # seen in two frames at most
+    tracks = torch.where(visible[..., None], data.tracks, float("nan"))
+    result = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(0))
+    assert bool((result.labels[short] == -1).all())
+    judged = ~short & (data.labels >= 0)
+    assert misclassification(result.labels[judged], data.labels[judged]) <= 0.05
+
+
+def test_deterministic_for_a_generator():
+    data = scene(4, 2)
+    first = segment_motions(data.tracks, generator=torch.Generator().manual_seed(7))
+    second = segment_motions(data.tracks, generator=torch.Generator().manual_seed(7))
+    torch.testing.assert_close(first.labels, second.labels, rtol=0, atol=0)
+
+
+def test_bad_input_is_named():
+    data = scene(3, 1)
+    with pytest.raises(ShapeError, match="tracks"):
+        segment_motions(data.tracks[..., :1])
+    with pytest.raises(ShapeError, match="visible"):
+        segment_motions(data.tracks, torch.ones(2, 3, dtype=torch.bool))
+    with pytest.raises(InputError, match="bool"):
+        segment_motions(data.tracks, torch.ones(data.tracks.shape[:2]))
+    broken = data.tracks.clone()
+    broken[1, 4] = float("nan")
+    with pytest.raises(InputError, match="non-finite"):
+        segment_motions(broken)
+    with pytest.raises(NotEnoughDataError):
+        segment_motions(data.tracks[:, :5])
+    with pytest.raises(Exception, match="must"):
+        SegmentationConfig(preference_share=1.5)
+
+
+needs_data = pytest.mark.skipif(not (DATA / "hopkins155_subset").is_dir(), reason="needs ../shared/data (Hopkins155)")
+
+
+@needs_data
+def test_hopkins155_subset_misclassification():
+    """The four sequences of hopkins155_subset (seed 0): given the number of motions, mean
+    misclassification <= 5 % (measured 2.2 %: kanatani1 8.8 %, the others 0-0.2 %); the number
+    of motions is found on at least 3 of the 4 (kanatani1's object is weakly separated: 3 found)."""
+    pytest.importorskip("scipy")
+    from torchsfm.io.datasets import read_hopkins155
+
+    errors, right = [], 0
+    for name in ("1R2RC", "cars1", "kanatani1", "truck1"):
+        sequence = read_hopkins155(DATA / "hopkins155_subset" / name)
+        motions = int(sequence.labels.max()) + 1
+        given = segment_motions(sequence.tracks, num_motions=motions, generator=torch.Generator().manual_seed(0))
+        errors.append(misclassification(given.labels, sequence.labels))
+        found = segment_motions(sequence.tracks, generator=torch.Generator().manual_seed(0))
+        right += found.num_motions == motions
+    assert sum(errors) / len(errors) <= 0.05, errors
+    assert right >= 3

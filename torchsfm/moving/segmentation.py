@@ -1,0 +1,405 @@
+"""Motion segmentation: every independent rigid motion among N tracks over F frames (ours).
+
+Preference clustering (in the family of J-/T-linkage and the ordered-residual kernel) on batched
+minimal-sample models:
+
+1. **Hypotheses** of two kinds (``config.models``), ``config.hypotheses`` of each per round:
+   ``fundamental`` — an 8-point F fitted to 8 tracks over every pair of ``sample_frames``
+   frames (a track's residual: its largest Sampson distance over those pairs in which it is
+   seen); ``affine`` — the 3-dimensional affine subspace of trajectories that 4 tracks span over
+   ``affine_frames`` frames (Tomasi–Kanade; a track's residual: its distance to it, RMS per
+   frame). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
+   half the samples are local (a seed track and its nearest neighbours in the image: a rigid body
+   is usually a compact region); in each of the ``guided_rounds`` that follow, the other tracks
+   of a sample are drawn in proportion to their similarity to the seed in the previous round —
+   same-motion tracks spread over the whole body, so models are fitted over its extent rather than
+   over a patch (a patch's F extrapolates badly, which made large backgrounds fall apart).
+2. **Preferences**: each track prefers the ``preference_share`` of its defined hypotheses with
+   the smallest residuals (ordered-residual kernel, Chin, Wang & Suter 2009) — a rank, so no
+   noise threshold is fitted to a data set.
+3. **Similarity**: the Tanimoto similarity of two tracks' preferences over the hypotheses defined
+   for both (tracks seen in different frames compare on what they share). A track whose
+   ``support`` most similar tracks are on average at most ``outlier_factor`` times as similar as
+   two unrelated preference sets are by chance (q / (2 - q) for share q) fits no motion: it is
+   an outlier, labelled -1. The affinity keeps each track's ``links`` strongest links.
+4. **Clustering**: spectral k-means (normalized affinity, ``restarts`` batched restarts) cuts
+   the tracks into ``pieces``; pieces are merged two at a time, the pair most strongly linked
+   relative to the smaller one's volume first. The number of motions (when not given) is the
+   count just before the largest relative drop of that link over the merges (model selection on
+   the dendrogram; see :func:`merge_clusters`).
+5. **The static scene** is the motion whose tracks cover most cells of an 8×8 grid over the
+   image over all frames (the scene surrounds the objects), times its number of tracks; it becomes
+   label 0, the others 1..k in decreasing size. This is a prior, not geometry: with a moving
+   camera every rigid body is an equally valid "world"; callers holding better evidence
+   (:func:`torchsfm.reject_moving_objects_in_tracks` uses the thesis' rigidity votes) choose
+   among ``clusters`` themselves.
+
+Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
+input (matches with several motions) is accepted: the F hypotheses then use the one pair.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import SegmentationConfig
+from torchsfm.errors import NotEnoughDataError
+from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
+from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.moving.imor import MIN_VECTORS
+from torchsfm.moving.track_input import check_tracks
+from torchsfm.robust.samplers import resolve_generator
+
+SAMPLE_SIZE = 8
+COVERAGE_GRID = 8
+
+
+@dataclass
+class MotionSegmentation:
+    """Result of :func:`segment_motions` for N tracks.
+
+    Fields:
+        labels: (N,) int64: 0 the static scene, 1..k the independently moving bodies (largest
+            first), -1 unassigned (seen in fewer than ``min_frames`` frames, or an outlier).
+        num_motions: rigid motions found, the static scene included (k + 1).
+        clusters: (N,) int64 cluster of every judged track before the static scene is chosen
+            (-1 unassigned); ``labels`` renumbers them.
+        static_cluster: the cluster taken for the static scene.
+        sizes: (num_motions,) tracks per label 0..k.
+        coverage: (num_motions,) grid cells (of 64) each label's tracks cover over all frames.
+        residuals: (num_motions,) how rigid each label's tracks are: the median over its tracks
+            of their RMS Sampson distance (pixels) to one F per frame pair fitted to all of them
+            (:func:`motion_residuals`); NaN for a label too small to fit.
+        eigenvalues: (pieces,) leading eigenvalues of the normalized affinity.
+        affinity: (N, N) the sparsified symmetric affinity the clustering used.
+    """
+
+    labels: Tensor
+    num_motions: int
+    clusters: Tensor
+    static_cluster: int
+    sizes: Tensor
+    coverage: Tensor
+    residuals: Tensor
+    eigenvalues: Tensor
+    affinity: Tensor
+
+
+def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: SegmentationConfig | None = None,
+                    num_motions: int | None = None, generator: torch.Generator | None = None) -> MotionSegmentation:
+    """Segment N tracks over F frames into rigid motions (see the module docstring).
+
+    Args:
+        tracks: (F, N, 2) pixels, F >= 2 (values where not visible are ignored).
+        visible: (F, N) bool, where each track is seen (default: everywhere).
+        config: the ``segmentation`` section (default settings if None).
+        num_motions: the number of rigid motions, static scene included, when known (benchmarks
+            that are given it); None finds it (model selection on the merges).
+        generator: random source of the hypotheses and of k-means.
+
+    Returns:
+        A :class:`MotionSegmentation`.
+
+    Raises:
+        ShapeError, InputError: malformed tracks or visibility, non-finite visible positions.
+        NotEnoughDataError: fewer than 2 frames, fewer than 12 tracks seen in ``min_frames``
+            frames (or fitting any motion), or ``num_motions`` outside 1..N.
+    """
+    config = config or SegmentationConfig()
+    tracks, visible = check_tracks(tracks, visible, min_frames=2)
+    generator = resolve_generator(generator, tracks.device)
+    judged = visible.sum(0) >= min(config.min_frames, tracks.shape[0])
+    if int(judged.sum()) < MIN_VECTORS:
+        raise NotEnoughDataError(f"only {int(judged.sum())} tracks are seen in {config.min_frames} frames (needs {MIN_VECTORS})")
+    index = torch.nonzero(judged)[:, 0]
+    similarity = None
+    for _ in range(1 + config.guided_rounds):
+        fits = [MODELS[name](tracks[:, index], visible[:, index], config, generator, similarity) for name in config.model_kinds]
+        preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
+        similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1))
+    explained = explained_tracks(similarity, config)
+    if int(explained.sum()) < MIN_VECTORS:
+        raise NotEnoughDataError(f"only {int(explained.sum())} tracks fit any rigid motion (needs {MIN_VECTORS})")
+    index, similarity = index[explained], similarity[explained][:, explained]
+    affinity = strongest_links(similarity, config.links)
+    eigenvalues, vectors = leading_eigenvectors(affinity, config.pieces)
+    if num_motions is not None and not 1 <= num_motions <= index.numel():
+        raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
+    pieces = max(1, min(config.pieces, vectors.shape[1], index.numel() // (2 * config.support)))
+    embedding = vectors[:, :pieces]
+    embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
+    found = merge_clusters(affinity, kmeans(embedding, pieces, config.restarts, config.kmeans_iterations, generator),
+                           num_motions, config)
+    num_motions = int(found.max()) + 1
+    N = tracks.shape[1]
+    clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
+    clusters[index] = found
+    coverage = grid_coverage(tracks, visible, clusters, num_motions)
+    sizes = torch.bincount(found, minlength=num_motions)
+    static = int((coverage * sizes).argmax())
+    others = [c for c in sorted(range(num_motions), key=lambda c: -int(sizes[c])) if c != static]
+    order = torch.tensor([static, *others], device=tracks.device)
+    relabel = torch.empty_like(order)
+    relabel[order] = torch.arange(num_motions, device=tracks.device)
+    labels = torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
+    full = torch.zeros(N, N, dtype=affinity.dtype, device=tracks.device)
+    full[index[:, None], index[None]] = affinity
+    members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
+    residuals = motion_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))
+    return MotionSegmentation(labels=labels, num_motions=num_motions, clusters=clusters, static_cluster=static,
+                              sizes=sizes[order], coverage=coverage[order], residuals=residuals,
+                              eigenvalues=eigenvalues, affinity=full)
+
+
+def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: int, size: int,
+                      config: SegmentationConfig, generator: torch.Generator,
+                      guide: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """``count`` samples of ``size`` tracks, each seen in the same ``frames_per`` frames.
+
+    tracks (F, N, 2), visible (F, N), guide None or (N, N) similarity -> frames (H, m) sorted,
+    sample (H, size) track indices and usable (H,) bool (every sampled track seen in every chosen
+    frame). The seed comes first; without a guide the others are among its ``config.neighbours``
+    nearest tracks in the first frame for a share ``config.local_share`` of the samples and
+    anywhere for the rest; with a guide they are drawn with probability proportional to their
+    similarity to the seed (same-motion tracks spread over the whole body, so the model is fitted
+    over its extent rather than a patch).
+    """
+    F, N, _ = tracks.shape
+    H, m = count, min(frames_per, F)
+    device = tracks.device
+    rows = torch.arange(H, device=device)
+    seeds = torch.randint(0, N, (H,), generator=generator, device=device)
+    frames = torch.multinomial(visible[:, seeds].T.double(), m, generator=generator).sort(1).values  # (H, m)
+    seen_in_all = visible[frames].all(1)  # (H, N)
+    start = tracks[frames[:, 0]]  # (H, N, 2)
+    distance = (start - start[rows, seeds][:, None]).norm(dim=-1)
+    local = torch.rand(H, generator=generator, device=device) < config.local_share
+    if guide is not None:
+        weight = torch.where(seen_in_all, guide[seeds], 0.0)
+        weight[rows, seeds] = 0.0
+        weight = weight + 1e-9 * seen_in_all  # rows with too few similar tracks fall back to uniform
+        weight[rows, seeds] = 0.0
+        drawn = torch.multinomial(weight + 1e-30, size - 1, generator=generator)
+        sample = torch.cat([seeds[:, None], drawn], 1)
+        return frames, sample, seen_in_all.gather(1, sample).all(1)
+    key = torch.where(local[:, None], distance, torch.rand(H, N, generator=generator, dtype=tracks.dtype, device=device))
+    key = torch.where(seen_in_all, key, torch.inf)
+    key[rows, seeds] = -1.0  # the seed comes first
+    pool = min(config.neighbours, N)
+    nearest = key.topk(pool, dim=1, largest=False).indices  # (H, pool), seed first
+    pick = torch.rand(H, pool - 1, generator=generator, device=device).argsort(1)[:, :size - 1]
+    sample = torch.cat([seeds[:, None], nearest[:, 1:].gather(1, pick)], 1)
+    usable = torch.isfinite(key.gather(1, sample)).all(1)
+    return frames, sample, usable
+
+
+def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+                          guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Residuals of every track to ``config.hypotheses`` sampled multi-frame F models.
+
+    tracks (F, N, 2) float64, visible (F, N) -> residuals (H, N) pixels (the largest Sampson
+    distance over the hypothesis' frame pairs) and defined (H, N) bool.
+    """
+    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames,
+                                               SAMPLE_SIZE, config, generator, guide)
+    H, m = frames.shape
+    worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
+    pairs_seen = torch.zeros_like(worst, dtype=torch.long)
+    for i in range(m):
+        for j in range(i + 1, m):
+            a, b = frames[:, i], frames[:, j]
+            x1, x2 = tracks[a[:, None], sample], tracks[b[:, None], sample]  # (H, 8, 2)
+            model = eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
+            residual = sampson_error(model, tracks[a], tracks[b]).sqrt()
+            both = visible[a] & visible[b]
+            worst = torch.where(both, torch.maximum(worst, residual), worst)
+            pairs_seen += both
+    defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
+    return worst, defined.scatter(1, sample, False)
+
+
+def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+                     guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Residuals of every track to sampled affine-camera motions over ``config.affine_frames``
+    frames: 4 tracks span the 3-dimensional affine subspace of trajectories of their rigid
+    motion (Tomasi & Kanade); a track's residual is its distance to it, RMS per frame (pixels).
+    Defined where the track is seen in all the frames. -> (H, N), (H, N) bool."""
+    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.affine_frames, 4,
+                                               config, generator, guide)
+    H, m = frames.shape
+    trajectories = tracks[frames].permute(0, 2, 1, 3).reshape(H, tracks.shape[1], 2 * m)  # (H, N, 2m)
+    origin = trajectories[torch.arange(H, device=tracks.device), sample[:, 0]]  # (H, 2m)
+    spans = trajectories.gather(1, sample[:, 1:, None].expand(-1, -1, 2 * m)) - origin[:, None]  # (H, 3, 2m)
+    basis, triangle = torch.linalg.qr(spans.transpose(1, 2))  # (H, 2m, 3)
+    extent = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
+    offsets = trajectories - origin[:, None]
+    residual = (offsets - (offsets @ basis) @ basis.transpose(1, 2)).norm(dim=-1) / m ** 0.5
+    seen = visible[frames].all(1)
+    defined = seen & (usable & (extent > 1.0))[:, None]
+    return residual, defined.scatter(1, sample, False)
+
+
+def ordered_preferences(residuals: Tensor, defined: Tensor, config: SegmentationConfig) -> tuple[Tensor, Tensor]:
+    """(H, N) residuals -> (N, H) preferences, each track preferring the ``preference_share`` of
+    its defined hypotheses with the smallest residuals (ordered-residual kernel), and the (N, H)
+    float mask of defined entries."""
+    order = torch.where(defined, residuals, torch.inf).argsort(0)
+    rank = torch.empty_like(order)
+    rank.scatter_(0, order, torch.arange(order.shape[0], device=order.device)[:, None].expand_as(order))
+    keep = (defined.sum(0) * config.preference_share).ceil().clamp_min(1)
+    return ((rank < keep) & defined).to(residuals.dtype).T, defined.to(residuals.dtype).T
+
+
+def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
+    """(N, N) preference similarity -> (N,) bool: tracks whose ``config.support`` most similar
+    tracks are, on average, more than ``config.outlier_factor`` times as similar as two tracks
+    with unrelated preferences would be by chance — q / (2 - q) for preference share q, the
+    expected Tanimoto similarity of two random subsets of that share. A gross outlier (a
+    tracking error) fits no motion, so its preferences are unrelated to every other track's."""
+    share = config.preference_share
+    chance = share / (2.0 - share)
+    support = similarity.topk(min(config.support, similarity.shape[0] - 1), dim=1).values.mean(1)
+    return support > config.outlier_factor * chance
+
+
+def tanimoto_similarity(preference: Tensor, mask: Tensor) -> Tensor:
+    """(N, H) preferences and defined mask -> (N, N) Tanimoto similarity over the hypotheses
+    defined for both tracks (zero diagonal)."""
+    inner = preference @ preference.T
+    own = preference @ mask.T  # |p_i| restricted to the hypotheses defined for j
+    denominator = own + own.T - inner
+    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(torch.finfo(inner.dtype).tiny), 0.0)
+    return similarity.fill_diagonal_(0.0)
+
+
+def strongest_links(similarity: Tensor, links: int) -> Tensor:
+    """(N, N) similarity -> symmetric affinity keeping each row's ``links`` strongest entries."""
+    k = min(links, similarity.shape[0] - 1)
+    strongest = similarity.topk(k, dim=1).indices
+    sparse = torch.zeros_like(similarity).scatter_(1, strongest, similarity.gather(1, strongest))
+    return torch.maximum(sparse, sparse.T)
+
+
+def leading_eigenvectors(affinity: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """The ``count`` largest eigenvalues (descending) and eigenvectors (N, count) of the
+    normalized affinity D^-1/2 A D^-1/2."""
+    degree = affinity.sum(1).clamp_min(torch.finfo(affinity.dtype).tiny)
+    scale = degree.rsqrt()
+    values, vectors = torch.linalg.eigh(affinity * scale[:, None] * scale[None])
+    count = min(count, values.numel())
+    return values.flip(0)[:count], vectors.flip(1)[:, :count]
+
+
+def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: torch.Generator) -> Tensor:
+    """Lloyd's k-means on (N, D) points with ``restarts`` random initializations run as one
+    batch; the labels (N,) of the restart with the smallest within-cluster sum of squares."""
+    N = points.shape[0]
+    start = torch.rand(restarts, N, generator=generator, device=points.device).argsort(1)[:, :k]
+    centres = points[start]  # (R, k, D)
+    for _ in range(iterations):
+        labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)  # (R, N)
+        one_hot = torch.nn.functional.one_hot(labels, k).to(points.dtype)  # (R, N, k)
+        counts = one_hot.sum(1)  # (R, k)
+        sums = one_hot.transpose(1, 2) @ points  # (R, k, D)
+        centres = torch.where(counts[..., None] > 0, sums / counts[..., None].clamp_min(1), centres)
+    labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)
+    cost = (points[None] - centres.gather(1, labels[..., None].expand(-1, -1, points.shape[1]))).square().sum((1, 2))
+    return labels[int(cost.argmin())]
+
+
+MODELS = {"fundamental": fundamental_residuals, "affine": affine_residuals}
+
+
+def merge_clusters(affinity: Tensor, labels: Tensor, count: int | None, config: SegmentationConfig) -> Tensor:
+    """Merge the clusters of an over-segmentation (N,) labels 0..K-1 down to ``count`` clusters.
+
+    Each step joins the two clusters most strongly linked relative to the smaller one's volume,
+    cut(A, B) / min(vol(A), vol(B)): the pieces of one motion are linked along their borders,
+    distinct motions hardly at all. Without ``count`` the merges run down to one cluster and the
+    number kept is the one before the largest relative drop of that link,
+    (s_c + floor) / (s_(c-1) + floor) over c = 2..``config.max_motions`` (s_c: the link of the
+    merge that leaves c clusters, ``config.link_floor`` the link counted as none); one cluster
+    if no drop reaches ``config.min_link_drop``. Returns labels 0..C-1, largest volume first.
+    """
+    K = int(labels.max()) + 1
+    one_hot = torch.nn.functional.one_hot(labels, K).to(affinity.dtype)  # (N, K)
+    links = one_hot.T @ affinity @ one_hot  # (K, K)
+    alive = torch.bincount(labels, minlength=K) > 0
+    tiny = torch.finfo(links.dtype).tiny
+    merges: list[tuple[int, int, float]] = []
+    while int(alive.sum()) > 1:
+        volume = links.sum(1)
+        score = links / torch.minimum(volume[:, None], volume[None]).clamp_min(tiny)
+        score = torch.where(alive[:, None] & alive[None], score, -1.0).fill_diagonal_(-1.0)
+        best = int(score.argmax())
+        a, b = divmod(best, K)
+        merges.append((a, b, float(score.view(-1)[best])))
+        links[a] += links[b]
+        links[:, a] += links[:, b]
+        links[b] = 0
+        links[:, b] = 0
+        alive[b] = False
+    start = len(merges) + 1  # clusters before any merge
+    if count is None:
+        link = {start - 1 - i: merge[2] for i, merge in enumerate(merges)}  # clusters left -> link
+        drops = {c: (link[c] + config.link_floor) / (link[c - 1] + config.link_floor)
+                 for c in range(2, min(config.max_motions, start - 1) + 1)}
+        count = max(drops, key=drops.get) if drops and max(drops.values()) >= config.min_link_drop else 1
+    groups = torch.arange(K, device=labels.device)
+    for a, b, _ in merges[:max(start - count, 0)]:
+        groups[groups == b] = a
+    merged = groups[labels]
+    survivors, sizes = merged.unique(return_counts=True)
+    survivors = survivors[sizes.argsort(descending=True)]
+    renumber = torch.full((K,), -1, dtype=torch.long, device=labels.device)
+    renumber[survivors] = torch.arange(survivors.numel(), device=labels.device)
+    return renumber[merged]
+
+
+def grid_coverage(tracks: Tensor, visible: Tensor, labels: Tensor, count: int) -> Tensor:
+    """(count,) cells of a COVERAGE_GRID² grid over the tracks' bounding box that each label's
+    visible positions touch over all frames."""
+    points = tracks[visible]
+    low, high = points.amin(0), points.amax(0)
+    cell = ((tracks - low) / (high - low).clamp_min(1e-9) * COVERAGE_GRID).long().clamp(0, COVERAGE_GRID - 1)
+    cell_index = cell[..., 0] * COVERAGE_GRID + cell[..., 1]  # (F, N)
+    seen = visible & (labels >= 0)
+    occupied = torch.zeros(count, COVERAGE_GRID ** 2, dtype=torch.bool, device=tracks.device)
+    occupied[labels[None].expand_as(cell_index)[seen], cell_index[seen]] = True
+    return occupied.sum(1)
+
+
+def frame_pairs(num_frames: int, count: int) -> Tensor:
+    """(P, 2) frame pairs (f, f + gap), gap = a third of the sequence (at least 1), their first
+    frames spread evenly: wide enough for parallax, short enough for tracks with gaps."""
+    gap = max(1, (num_frames - 1) // 3)
+    starts = torch.linspace(0, num_frames - 1 - gap, min(count, num_frames - gap)).round().long().unique()
+    return torch.stack([starts, starts + gap], 1)
+
+
+def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+    """How well one rigid motion explains each of C track sets: (F, N, 2) tracks, (F, N)
+    visibility, (C, N) bool members, (P, 2) frame pairs -> (C,) median over each set's tracks of
+    their RMS Sampson distance (pixels) to the set's F of every pair (a least-squares 8-point fit
+    reweighted once by a Cauchy loss at the median residual, so a few strays do not bend it).
+    NaN where a set has fewer than 8 tracks in every pair."""
+    a, b = pairs[:, 0], pairs[:, 1]
+    x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
+    seen = members[:, None] & (visible[a] & visible[b])[None]  # (C, P, N)
+    weights = seen.to(tracks.dtype)
+    usable = weights.sum(-1) >= SAMPLE_SIZE  # (C, P)
+    C = members.shape[0]
+    x1, x2 = x1.expand(C, -1, -1, -1), x2.expand(C, -1, -1, -1)
+    for _ in range(2):
+        model = eight_point(x1, x2, torch.where(usable[..., None], weights, 1.0))
+        residual = sampson_error(model, x1, x2).sqrt()  # (C, P, N)
+        scale = torch.where(seen, residual, torch.nan).nanmedian(-1).values.clamp_min(1e-9)  # (C, P)
+        weights = seen * (1.0 / (1.0 + (residual / scale[..., None]).square()))
+    valid = seen & usable[..., None]
+    squares = torch.where(valid, residual.square(), 0.0).sum(1)
+    rms = (squares / valid.sum(1).clamp_min(1)).sqrt()  # (C, N)
+    judged = members & valid.any(1)
+    return torch.where(judged, rms, torch.nan).nanmedian(-1).values

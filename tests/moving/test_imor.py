@@ -98,7 +98,7 @@ def test_bad_input_is_named():
     bad[3, 0] = float("nan")
     with pytest.raises(InputError, match="x1"):
         reject_moving_objects(x, bad, x)
-    with pytest.raises(NotEnoughDataError, match="three frames"):
+    with pytest.raises(NotEnoughDataError, match="3 frames"):
         reject_moving_objects_in_tracks(torch.stack([x, x]))
     with pytest.raises(ShapeError, match="triplet"):
         reject_moving_objects_in_tracks(torch.stack([x, x, x]), triplets=[(0, 1, 1)])

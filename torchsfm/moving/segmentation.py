@@ -28,11 +28,11 @@ minimal-sample models:
    count just before the largest relative drop of that link over the merges (model selection on
    the dendrogram; see :func:`merge_clusters`).
 5. **The static scene** is the motion whose tracks cover most cells of an 8×8 grid over the
-   image over all frames (the scene surrounds the objects), times its number of tracks; it becomes
+   image over all frames (the scene surrounds the objects; ties: the most tracks); it becomes
    label 0, the others 1..k in decreasing size. This is a prior, not geometry: with a moving
-   camera every rigid body is an equally valid "world"; callers holding better evidence
-   (:func:`torchsfm.reject_moving_objects_in_tracks` uses the thesis' rigidity votes) choose
-   among ``clusters`` themselves.
+   camera every rigid body is an equally valid "world" (measured on the translating-camera
+   sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
+   rigidity votes reject least); callers holding better evidence choose among ``clusters``.
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
@@ -139,7 +139,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     clusters[index] = found
     coverage = grid_coverage(tracks, visible, clusters, num_motions)
     sizes = torch.bincount(found, minlength=num_motions)
-    static = int((coverage * sizes).argmax())
+    static = int((coverage * (N + 1) + sizes).argmax())  # most coverage, then most tracks
     others = [c for c in sorted(range(num_motions), key=lambda c: -int(sizes[c])) if c != static]
     order = torch.tensor([static, *others], device=tracks.device)
     relabel = torch.empty_like(order)

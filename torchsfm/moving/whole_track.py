@@ -14,8 +14,9 @@ Two kinds of evidence, combined by ``moving_objects.track_method``:
 * ``both`` — background for both.
 * ``segmentation`` — every rigid motion is segmented first
   (:func:`torchsfm.moving.segmentation.segment_motions`, the number of motions found by the
-  method); the static scene is the motion the triplet votes reject least (ties: the one covering
-  most of the image), and every track of it is background.
+  method) and the static scene is its label 0, the motion covering most of the image (measured
+  on Hopkins155 and KT3DMoSeg: a better choice than the motion the triplet votes reject least);
+  no triplet votes are cast. Tracks it leaves unassigned (too short, outliers) are untested.
 
 A track seen in fewer than three frames cannot be judged: it is reported as untested and not
 kept as background.
@@ -45,9 +46,9 @@ class TrackRejection:
         tested: (N,) bool, tracks the method could judge (seen in >= 3 frames; for
             ``triplets``, seen in a tested triplet).
         rejection_share: (N,) share of the triplets that rejected each track (NaN where no
-            triplet tested it).
+            triplet tested it; all NaN for ``segmentation``).
         group_labels: (N,) int64 rigid group of each track (-1: none explains it, or not
-            computed with ``triplets``).
+            computed with ``triplets``; the segmentation's labels for ``segmentation``).
         static_group: index of the group taken for the static scene (-1 if none).
         rms: (N,) RMS reprojection error under the static group's cameras, pixels (NaN where
             not computed or untested): the whole-track evidence.
@@ -100,17 +101,18 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
     for triplet in triplets:
         if len(triplet) != 3 or len(set(triplet)) != 3 or not all(0 <= f < F for f in triplet):
             raise ShapeError(f"triplet {triplet} must name three distinct frames of 0..{F - 1}")
+    nan = torch.full((N,), float("nan"), dtype=torch.float64, device=tracks.device)
+    if settings.track_method == "segmentation":
+        segmentation = segment_motions(tracks, visible, config=config.segmentation, generator=generator)
+        return TrackRejection(background_mask=segmentation.labels == 0, tested=segmentation.labels >= 0,
+                              rejection_share=nan, group_labels=segmentation.labels, static_group=0, rms=nan, groups=[],
+                              triplets=[], results=[], method="segmentation", fallback=None, segmentation=segmentation)
     share, tested_triplets, results = _triplet_votes(tracks, visible, triplets, config, generator)
     voted = ~share.isnan()
     by_votes = voted & (share < settings.min_rejection_share)
-    nan = torch.full((N,), float("nan"), dtype=torch.float64, device=tracks.device)
     labels, groups, fallback = torch.full((N,), -1, dtype=torch.long, device=tracks.device), [], None
-    static_group, rms, segmentation = -1, nan, None
-    if settings.track_method == "segmentation":
-        segmentation = segment_motions(tracks, visible, config=config.segmentation, generator=generator)
-        labels = segmentation.labels
-        static_group = _static_group(tracks, visible, labels, segmentation.num_motions, share)
-    elif settings.track_method != "triplets":
+    static_group, rms = -1, nan
+    if settings.track_method != "triplets":
         found = _rigid_groups(tracks, visible, config, generator)
         if isinstance(found, str):
             fallback = found
@@ -120,8 +122,6 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
             rms = torch.where(groups[static_group].rms.isfinite(), groups[static_group].rms, nan)
     if settings.track_method == "triplets" or fallback is not None:
         background, tested = by_votes, voted
-    elif segmentation is not None:
-        background, tested = labels == static_group, labels >= 0
     else:
         tested = visible.sum(0) >= 3
         background = labels == static_group
@@ -129,7 +129,7 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
             background &= ~voted | by_votes
     return TrackRejection(background_mask=background, tested=tested, rejection_share=share, group_labels=labels,
                           static_group=static_group, rms=rms, groups=groups, triplets=tested_triplets, results=results,
-                          method=settings.track_method, fallback=fallback, segmentation=segmentation)
+                          method=settings.track_method, fallback=fallback)
 
 
 def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, int, int]], config: Config,

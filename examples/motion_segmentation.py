@@ -18,7 +18,10 @@ Hopkins155 — SSC 2.2 % mean (Elhamifar & Vidal, TPAMI 2013), LRR 1.6 % (Liu et
 MSMC 0.3–0.8 % (Xu, Cheong & Li, CVPR 2018); KT3DMoSeg — MSMC 8–10 % (Xu et al., 2018), SSC
 21–26 %; AdelaideRMF F — RPA 10 %, T-linkage 9–10 % (Magri & Fusiello, 2015–2016).
 
-    python examples/motion_segmentation.py [--data ../shared/data]
+With ``--png DIR``, a picture per sequence of its tracks coloured by the labels found
+(``torchsfm.visualization.segmentation_figure``; the static scene grey, unassigned black).
+
+    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR]
 """
 
 from __future__ import annotations
@@ -31,8 +34,9 @@ from pathlib import Path
 import torch
 
 from torchsfm.evaluation import misclassification
-from torchsfm.io.datasets import MotionTracks, read_hopkins155, read_kt3dmoseg, read_adelaidermf
+from torchsfm.io.datasets import MotionTracks, read_adelaidermf, read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.segmentation import segment_motions
+from torchsfm.visualization import segmentation_figure, write_png
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NON_RIGID = {"arm", "articulated", "dancing"}
@@ -84,6 +88,7 @@ def opencv_sequential_ransac(sequence: MotionTracks, motions: int) -> torch.Tens
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--png", type=Path, default=None, help="write a picture of each segmentation here")
     args = parser.parse_args()
     table: dict[str, list[tuple[float, float, float | None, bool]]] = {}
     print(f"{'data set':14s} {'sequence':16s} {'F':>3s} {'N':>5s} {'k':>2s} {'found':>5s} "
@@ -98,6 +103,9 @@ def main() -> None:
         given = segment_motions(sequence.tracks, sequence.visible, num_motions=motions,
                                 generator=torch.Generator().manual_seed(0))
         baseline = opencv_sequential_ransac(sequence, motions)
+        if args.png is not None:
+            picture = segmentation_figure(sequence.tracks, sequence.visible, found.labels, sequence.image_size)
+            write_png(args.png / f"{sequence.name}.png", picture)
         row = (misclassification(found.labels, truth), misclassification(given.labels, truth),
                None if baseline is None else misclassification(baseline, truth), found.num_motions == motions)
         table.setdefault(name, []).append(row)

@@ -104,3 +104,27 @@ def corners_figure(image: Tensor, corners: Tensor, pattern: tuple[int, int]) -> 
     draw_points(canvas, corners, GREEN, radius)
     draw_points(canvas, corners[:1], RED, 2 * radius)
     return canvas
+
+
+MOTION_COLOURS = ((150, 150, 150), (230, 40, 40), (40, 120, 230), (40, 200, 60), (240, 170, 20), (190, 60, 210),
+                  (20, 200, 200), (140, 90, 40))
+
+
+def segmentation_figure(tracks: Tensor, visible: Tensor, labels: Tensor, size: tuple[int, int],
+                        image: Tensor | None = None) -> Tensor:
+    """A (3, H, W) uint8 picture of segmented tracks: every track's path over the frames it is
+    seen in, coloured by its (N,) label (0 the static scene grey, 1.. the moving bodies in
+    colours, -1 unassigned black), its last position as a dot; over ``image`` (a frame) if given,
+    else on white. tracks (F, N, 2) pixels, visible (F, N), size (width, height)."""
+    W, H = size
+    canvas = _as_rgb_uint8(image) if image is not None else torch.full((3, H, W), 255, dtype=torch.uint8)
+    steps = visible[:-1] & visible[1:]  # (F - 1, N) consecutive frames both seen
+    for label in labels.unique().tolist():
+        colour = (0, 0, 0) if label < 0 else MOTION_COLOURS[label % len(MOTION_COLOURS)]
+        mine = (labels == label)[None] & steps
+        draw_segments(canvas, tracks[:-1][mine], tracks[1:][mine], colour)
+        seen = visible & (labels == label)[None]
+        last = (torch.arange(tracks.shape[0], device=tracks.device)[:, None] * seen).argmax(0)  # (N,)
+        ends = tracks[last, torch.arange(tracks.shape[1], device=tracks.device)][labels == label]
+        draw_points(canvas, ends, colour, radius=max(1, round(max(W, H) / 400)))
+    return canvas

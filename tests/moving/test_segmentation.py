@@ -146,3 +146,16 @@ def test_adelaidermf_two_views_with_outliers():
         assert result.num_motions == int(scene.labels.max()) + 1
         errors.append(misclassification(result.labels, scene.labels))
     assert sum(errors) / len(errors) <= 0.20, errors
+
+
+def test_segmentation_figure_colours_each_motion():
+    from torchsfm.visualization import MOTION_COLOURS, segmentation_figure
+
+    data = scene(4, 2)
+    result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
+    picture = segmentation_figure(data.tracks, torch.ones(data.tracks.shape[:2], dtype=torch.bool), result.labels,
+                                  data.image_size)
+    assert picture.shape == (3, 480, 640) and picture.dtype == torch.uint8
+    for label in range(result.num_motions):
+        colour = torch.tensor(MOTION_COLOURS[label], dtype=torch.uint8)[:, None, None]
+        assert bool((picture == colour).all(0).any()), f"motion {label} not drawn"

@@ -55,6 +55,7 @@ from torchsfm.robust.samplers import resolve_generator
 
 SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
+REFITS = 3  # trimmed refits of a motion's F (diagnostics)
 
 
 @dataclass
@@ -125,10 +126,10 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         raise NotEnoughDataError(f"only {int(explained.sum())} tracks fit any rigid motion (needs {MIN_VECTORS})")
     index, similarity = index[explained], similarity[explained][:, explained]
     affinity = strongest_links(similarity, config.links)
-    eigenvalues, vectors = leading_eigenvectors(affinity, config.pieces)
+    eigenvalues, vectors = leading_eigenvectors(affinity, max(config.pieces, num_motions or 0))
     if num_motions is not None and not 1 <= num_motions <= index.numel():
         raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
-    pieces = max(1, min(config.pieces, vectors.shape[1], index.numel() // (2 * config.support)))
+    pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
     embedding = vectors[:, :pieces]
     embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
     found = merge_clusters(affinity, kmeans(embedding, pieces, config.restarts, config.kmeans_iterations, generator),
@@ -383,9 +384,9 @@ def frame_pairs(num_frames: int, count: int) -> Tensor:
 def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
     """How well one rigid motion explains each of C track sets: (F, N, 2) tracks, (F, N)
     visibility, (C, N) bool members, (P, 2) frame pairs -> (C,) median over each set's tracks of
-    their RMS Sampson distance (pixels) to the set's F of every pair (a least-squares 8-point fit
-    reweighted once by a Cauchy loss at the median residual, so a few strays do not bend it).
-    NaN where a set has fewer than 8 tracks in every pair."""
+    their RMS Sampson distance (pixels) to the set's F of every pair: a least-trimmed-squares
+    8-point fit (``REFITS`` refits on the half of the set with the smallest residuals, so up to
+    half of it may be strays). NaN where a set has fewer than 8 tracks in every pair."""
     a, b = pairs[:, 0], pairs[:, 1]
     x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
     seen = members[:, None] & (visible[a] & visible[b])[None]  # (C, P, N)
@@ -393,11 +394,12 @@ def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Te
     usable = weights.sum(-1) >= SAMPLE_SIZE  # (C, P)
     C = members.shape[0]
     x1, x2 = x1.expand(C, -1, -1, -1), x2.expand(C, -1, -1, -1)
-    for _ in range(2):
+    for _ in range(REFITS + 1):
         model = eight_point(x1, x2, torch.where(usable[..., None], weights, 1.0))
         residual = sampson_error(model, x1, x2).sqrt()  # (C, P, N)
-        scale = torch.where(seen, residual, torch.nan).nanmedian(-1).values.clamp_min(1e-9)  # (C, P)
-        weights = seen * (1.0 / (1.0 + (residual / scale[..., None]).square()))
+        half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, P)
+        weights = (seen & (residual <= half[..., None])).to(tracks.dtype)
+        usable &= weights.sum(-1) >= SAMPLE_SIZE
     valid = seen & usable[..., None]
     squares = torch.where(valid, residual.square(), 0.0).sum(1)
     rms = (squares / valid.sum(1).clamp_min(1)).sqrt()  # (C, N)

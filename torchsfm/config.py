@@ -468,7 +468,10 @@ class SegmentationConfig:
 
     Each round samples ``hypotheses`` models of every kind in ``models`` (``fundamental``: an
     8-point F over every pair of ``sample_frames`` frames; ``affine``: the affine-camera
-    trajectory subspace of 4 tracks over ``affine_frames`` frames). The first round draws a share
+    trajectory subspace of 4 tracks over ``affine_frames`` frames; ``homography``: a plane's
+    4-point homographies over every pair of ``sample_frames`` frames — optional: measured once
+    with the default two, it lowered the mean misclassification (Hopkins 6.99 → 5.86 %,
+    KT3DMoSeg 12.7 → 10.7 %) at 1.5× the time, within the method's run-to-run spread). The first round draws a share
     ``local_share`` of the samples among a seed track's ``neighbours`` nearest tracks; the
     ``guided_rounds`` that follow draw them in proportion to the previous round's similarity. A
     track prefers the ``preference_share`` of its hypotheses with the smallest residuals (ranks:
@@ -508,8 +511,8 @@ class SegmentationConfig:
 
     def __post_init__(self) -> None:
         _require(self.hypotheses >= 10, "hypotheses", self.hypotheses, "must be >= 10")
-        _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine"}, "models", self.models,
-                 "a comma-separated list of fundamental, affine")
+        _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine", "homography"}, "models",
+                 self.models, "a comma-separated list of fundamental, affine, homography")
         _require(self.sample_frames >= 2, "sample_frames", self.sample_frames, "must be >= 2")
         _require(0 <= self.local_share <= 1, "local_share", self.local_share, "must lie in [0, 1]")
         _require(self.neighbours >= 8, "neighbours", self.neighbours, "must be >= 8 (a sample is 8 tracks)")

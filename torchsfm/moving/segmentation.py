@@ -3,12 +3,13 @@
 Preference clustering (in the family of J-/T-linkage and the ordered-residual kernel) on batched
 minimal-sample models:
 
-1. **Hypotheses** of two kinds (``config.models``), ``config.hypotheses`` of each per round:
+1. **Hypotheses** of the kinds in ``config.models`` (default two), ``config.hypotheses`` of each per round:
    ``fundamental`` — an 8-point F fitted to 8 tracks over every pair of ``sample_frames``
    frames (a track's residual: its largest Sampson distance over those pairs in which it is
    seen); ``affine`` — the 3-dimensional affine subspace of trajectories that 4 tracks span over
    ``affine_frames`` frames (Tomasi–Kanade; a track's residual: its distance to it, RMS per
-   frame). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
+   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame pairs
+   as F (a local model). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
    half the samples are local (a seed track and its nearest neighbours in the image: a rigid body
    is usually a compact region); in each of the ``guided_rounds`` that follow, the other tracks
    of a sample are drawn in proportion to their similarity to the seed in the previous round —
@@ -48,6 +49,7 @@ from torch import Tensor
 from torchsfm.config import SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
+from torchsfm.geometry.homography import transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.track_input import check_tracks
@@ -311,7 +313,46 @@ def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: to
     return labels[int(cost.argmin())]
 
 
-MODELS = {"fundamental": fundamental_residuals, "affine": affine_residuals}
+def homography_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+                         guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Residuals of every track to sampled plane motions: 4 tracks over ``config.sample_frames``
+    frames, one homography per frame pair (4-point solve in Hartley-normalized coordinates); a
+    track's residual is its largest transfer distance (pixels) over the pairs in which it is seen.
+    A plane is a local model: it separates a body from the scene around it even where their
+    epipolar geometry agrees (a car driving along the camera's direction). -> (H, N), (H, N) bool."""
+    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames, 4,
+                                               config, generator, guide)
+    H, m = frames.shape
+    worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
+    pairs_seen = torch.zeros_like(worst, dtype=torch.long)
+    for i in range(m):
+        for j in range(i + 1, m):
+            a, b = frames[:, i], frames[:, j]
+            model = four_point_homography(tracks[a[:, None], sample], tracks[b[:, None], sample])
+            residual = transfer_error(model, tracks[a], tracks[b]).sqrt()
+            both = visible[a] & visible[b]
+            worst = torch.where(both, torch.maximum(worst, residual), worst)
+            pairs_seen += both
+    defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
+    return worst, defined.scatter(1, sample, False)
+
+
+def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:
+    """(H, 4, 2) correspondences -> (H, 3, 3) homographies x2 ~ H x1 (h33 = 1 in normalized
+    coordinates; NaN for a degenerate sample)."""
+    n1, T1 = hartley_normalize(x1)
+    n2, T2 = hartley_normalize(x2)
+    x, y, u, v = n1[..., 0], n1[..., 1], n2[..., 0], n2[..., 1]
+    one, zero = torch.ones_like(x), torch.zeros_like(x)
+    rows_u = torch.stack([x, y, one, zero, zero, zero, -u * x, -u * y], -1)
+    rows_v = torch.stack([zero, zero, zero, x, y, one, -v * x, -v * y], -1)
+    h, info = torch.linalg.solve_ex(torch.cat([rows_u, rows_v], -2), torch.cat([u, v], -1)[..., None])
+    G = torch.cat([h[..., 0], torch.ones_like(h[..., :1, 0])], -1).reshape(-1, 3, 3)
+    G = torch.where((info == 0)[:, None, None], G, torch.nan)
+    return torch.linalg.inv(T2) @ G @ T1
+
+
+MODELS = {"fundamental": fundamental_residuals, "affine": affine_residuals, "homography": homography_residuals}
 
 
 def merge_clusters(affinity: Tensor, labels: Tensor, count: int | None, config: SegmentationConfig) -> Tensor:

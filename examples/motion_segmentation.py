@@ -21,7 +21,7 @@ MSMC 0.3–0.8 % (Xu, Cheong & Li, CVPR 2018); KT3DMoSeg — MSMC 8–10 % (Xu e
 With ``--png DIR``, a picture per sequence of its tracks coloured by the labels found
 (``torchsfm.visualization.segmentation_figure``; the static scene grey, unassigned black).
 
-    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR]
+    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import misclassification
 from torchsfm.io.datasets import MotionTracks, read_adelaidermf, read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.segmentation import segment_motions
@@ -89,7 +90,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--png", type=Path, default=None, help="write a picture of each segmentation here")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                        help="config overrides, e.g. segmentation.models=fundamental,affine,homography")
     args = parser.parse_args()
+    config = with_overrides(Config(), args.set).segmentation
     table: dict[str, list[tuple[float, float, float | None, bool]]] = {}
     print(f"{'data set':14s} {'sequence':16s} {'F':>3s} {'N':>5s} {'k':>2s} {'found':>5s} "
           f"{'found %':>8s} {'given %':>8s} {'OpenCV %':>9s} {'s':>6s}")
@@ -98,9 +102,9 @@ def main() -> None:
         motions = int(truth.max()) + 1
         generator = torch.Generator().manual_seed(0)
         start = time.perf_counter()
-        found = segment_motions(sequence.tracks, sequence.visible, generator=generator)
+        found = segment_motions(sequence.tracks, sequence.visible, config=config, generator=generator)
         seconds = time.perf_counter() - start
-        given = segment_motions(sequence.tracks, sequence.visible, num_motions=motions,
+        given = segment_motions(sequence.tracks, sequence.visible, config=config, num_motions=motions,
                                 generator=torch.Generator().manual_seed(0))
         baseline = opencv_sequential_ransac(sequence, motions)
         if args.png is not None:

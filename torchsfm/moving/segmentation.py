@@ -33,7 +33,8 @@ minimal-sample models:
    label 0, the others 1..k in decreasing size. This is a prior, not geometry: with a moving
    camera every rigid body is an equally valid "world" (measured on the translating-camera
    sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
-   rigidity votes reject least); callers holding better evidence choose among ``clusters``.
+   rigidity votes reject least); callers holding better evidence choose another label as the
+   scene (``sizes`` and ``coverage`` are per label).
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
@@ -41,6 +42,7 @@ input (matches with several motions) is accepted: the F hypotheses then use the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -68,9 +70,6 @@ class MotionSegmentation:
         labels: (N,) int64: 0 the static scene, 1..k the independently moving bodies (largest
             first), -1 unassigned (seen in fewer than ``min_frames`` frames, or an outlier).
         num_motions: rigid motions found, the static scene included (k + 1).
-        clusters: (N,) int64 cluster of every judged track before the static scene is chosen
-            (-1 unassigned); ``labels`` renumbers them.
-        static_cluster: the cluster taken for the static scene.
         sizes: (num_motions,) tracks per label 0..k.
         coverage: (num_motions,) grid cells (of 64) each label's tracks cover over all frames.
         residuals: (num_motions,) how rigid each label's tracks are: the median over its tracks
@@ -82,8 +81,6 @@ class MotionSegmentation:
 
     labels: Tensor
     num_motions: int
-    clusters: Tensor
-    static_cluster: int
     sizes: Tensor
     coverage: Tensor
     residuals: Tensor
@@ -143,8 +140,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     coverage = grid_coverage(tracks, visible, clusters, num_motions)
     sizes = torch.bincount(found, minlength=num_motions)
     static = int((coverage * (N + 1) + sizes).argmax())  # most coverage, then most tracks
-    others = [c for c in sorted(range(num_motions), key=lambda c: -int(sizes[c])) if c != static]
-    order = torch.tensor([static, *others], device=tracks.device)
+    order = torch.tensor([static, *(c for c in range(num_motions) if c != static)], device=tracks.device)  # merges: largest first
     relabel = torch.empty_like(order)
     relabel[order] = torch.arange(num_motions, device=tracks.device)
     labels = torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
@@ -152,7 +148,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     full[index[:, None], index[None]] = affinity
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
     residuals = motion_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))
-    return MotionSegmentation(labels=labels, num_motions=num_motions, clusters=clusters, static_cluster=static,
+    return MotionSegmentation(labels=labels, num_motions=num_motions,
                               sizes=sizes[order], coverage=coverage[order], residuals=residuals,
                               eigenvalues=eigenvalues, affinity=full)
 
@@ -177,17 +173,15 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
     seeds = torch.randint(0, N, (H,), generator=generator, device=device)
     frames = torch.multinomial(visible[:, seeds].T.double(), m, generator=generator).sort(1).values  # (H, m)
     seen_in_all = visible[frames].all(1)  # (H, N)
-    start = tracks[frames[:, 0]]  # (H, N, 2)
-    distance = (start - start[rows, seeds][:, None]).norm(dim=-1)
     local = torch.rand(H, generator=generator, device=device) < config.local_share
     if guide is not None:
-        weight = torch.where(seen_in_all, guide[seeds], 0.0)
-        weight[rows, seeds] = 0.0
-        weight = weight + 1e-9 * seen_in_all  # rows with too few similar tracks fall back to uniform
+        weight = torch.where(seen_in_all, guide[seeds], 0.0) + 1e-9 * seen_in_all  # too few similar: uniform
         weight[rows, seeds] = 0.0
         drawn = torch.multinomial(weight + 1e-30, size - 1, generator=generator)
         sample = torch.cat([seeds[:, None], drawn], 1)
         return frames, sample, seen_in_all.gather(1, sample).all(1)
+    start = tracks[frames[:, 0]]  # (H, N, 2)
+    distance = (start - start[rows, seeds][:, None]).norm(dim=-1)
     key = torch.where(local[:, None], distance, torch.rand(H, N, generator=generator, dtype=tracks.dtype, device=device))
     key = torch.where(seen_in_all, key, torch.inf)
     key[rows, seeds] = -1.0  # the seed comes first
@@ -208,15 +202,28 @@ def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationC
     """
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames,
                                                SAMPLE_SIZE, config, generator, guide)
+
+    def fit(x1: Tensor, x2: Tensor) -> Tensor:
+        return eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
+
+    return worst_over_pairs(tracks, visible, frames, sample, usable, fit, lambda F, x1, x2: sampson_error(F, x1, x2).sqrt())
+
+
+def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Tensor, usable: Tensor,
+                     fit: Callable[[Tensor, Tensor], Tensor], distance: Callable[[Tensor, Tensor, Tensor], Tensor]
+                     ) -> tuple[Tensor, Tensor]:
+    """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
+    (H, 3, 3) models, ``distance`` (model, (H, N, 2), (H, N, 2)) -> (H, N) pixels. Returns each
+    track's largest distance over the pairs in which it is seen (H, N), and where that is defined
+    (H, N): seen in a pair, a usable sample, a finite model, and not one of the sample's tracks."""
     H, m = frames.shape
     worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
     pairs_seen = torch.zeros_like(worst, dtype=torch.long)
     for i in range(m):
         for j in range(i + 1, m):
             a, b = frames[:, i], frames[:, j]
-            x1, x2 = tracks[a[:, None], sample], tracks[b[:, None], sample]  # (H, 8, 2)
-            model = eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
-            residual = sampson_error(model, tracks[a], tracks[b]).sqrt()
+            model = fit(tracks[a[:, None], sample], tracks[b[:, None], sample])
+            residual = distance(model, tracks[a], tracks[b])
             both = visible[a] & visible[b]
             worst = torch.where(both, torch.maximum(worst, residual), worst)
             pairs_seen += both
@@ -322,19 +329,8 @@ def homography_residuals(tracks: Tensor, visible: Tensor, config: SegmentationCo
     epipolar geometry agrees (a car driving along the camera's direction). -> (H, N), (H, N) bool."""
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames, 4,
                                                config, generator, guide)
-    H, m = frames.shape
-    worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
-    pairs_seen = torch.zeros_like(worst, dtype=torch.long)
-    for i in range(m):
-        for j in range(i + 1, m):
-            a, b = frames[:, i], frames[:, j]
-            model = four_point_homography(tracks[a[:, None], sample], tracks[b[:, None], sample])
-            residual = transfer_error(model, tracks[a], tracks[b]).sqrt()
-            both = visible[a] & visible[b]
-            worst = torch.where(both, torch.maximum(worst, residual), worst)
-            pairs_seen += both
-    defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
-    return worst, defined.scatter(1, sample, False)
+    return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography,
+                            lambda G, x1, x2: transfer_error(G, x1, x2).sqrt())
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

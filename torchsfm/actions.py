@@ -145,24 +145,36 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
                                                   for index, count in sorted(model.moving_rejections_per_view.items())],
         "cameras": [{"image": name, "R": model.cameras.R[v].tolist(), "t": model.cameras.t[v].tolist()}
                     for v, name in enumerate(model.image_names)],
+        "other_models": [{"folder": f"other_models/{k}", "views": other.view_indices, "images": other.image_names,
+                          "points": other.num_points} for k, other in enumerate(model.other_models, start=1)],
         "config": config_to_dict(config),
     }
+
+
+def reconstruction_files(model: Reconstruction, summary: dict) -> dict[str, bytes | str]:
+    """The files of a multi-view model, by path under the output folder: ``summary.json``, the
+    model's ``model.wrl``, ``points.ply`` and ``colmap/*.txt``, and the same for each of its
+    ``other_models`` under ``other_models/k/`` (k from 1)."""
+    files: dict[str, bytes | str] = {"summary.json": json.dumps(summary, indent=2) + "\n"}
+    for folder, part in [("", model)] + [(f"other_models/{k}/", other) for k, other in enumerate(model.other_models, start=1)]:
+        files.update({f"{folder}model.wrl": vrml_text(part), f"{folder}points.ply": ply_bytes(part.points3d, part.colors)})
+        files.update({f"{folder}colmap/{name}": text for name, text in colmap_text(part).items()})
+    return files
 
 
 def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | Path, *, distortion: Tensor | None = None,
                          config: Config | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
     """Reconstruct images (files or folders) with intrinsics K (and radial distortion; K None:
     estimated, see :func:`torchsfm.reconstruct`); write VRML, PLY, COLMAP text and a JSON summary
-    into ``out``. Returns the summary (``K``: the intrinsics used)."""
+    into ``out`` (a set that split: the largest model there, each other one under
+    ``out/other_models/k/``). Returns the summary (``K``: the intrinsics used)."""
     config = config or Config()
     start = time.perf_counter()
     paths = image_paths(inputs)
     model = reconstruct(paths, K, distortion=distortion, config=config, generator=torch.Generator().manual_seed(seed),
                         progress=progress)
     summary = reconstruction_summary(model, time.perf_counter() - start, config)
-    files: dict[str, bytes | str | Tensor] = {"model.wrl": vrml_text(model), "points.ply": ply_bytes(model.points3d, model.colors),
-                                              "summary.json": json.dumps(summary, indent=2) + "\n"}
-    files.update({f"colmap/{name}": text for name, text in colmap_text(model).items()})
+    files = reconstruction_files(model, summary)
     if progress:
         progress("writing model files ...")
     write_files(Path(out), files)

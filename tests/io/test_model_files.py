@@ -2,6 +2,7 @@ import pytest
 import torch
 from torch.testing import assert_close
 
+from torchsfm.actions import reconstruction_files
 from torchsfm.camera import Camera
 from torchsfm.errors import InputError
 from torchsfm.io.atomic import atomic_write_text
@@ -90,3 +91,12 @@ def test_atomic_write_leaves_no_temporary_file(tmp_path):
     atomic_write_text(tmp_path / "a.txt", "hello")
     assert [p.name for p in tmp_path.iterdir()] == ["a.txt"] and (tmp_path / "a.txt").read_text() == "hello"
     assert oct((tmp_path / "a.txt").stat().st_mode & 0o777) != oct(0o600)
+
+
+def test_a_split_set_writes_each_other_model_in_its_own_folder():
+    model = _model()
+    model.other_models = [_model(), _model()]
+    files = reconstruction_files(model, {"views_registered": 2})
+    for folder in ("", "other_models/1/", "other_models/2/"):
+        assert {f"{folder}model.wrl", f"{folder}points.ply", f"{folder}colmap/images.txt"} <= files.keys()
+    assert "other_models/3/model.wrl" not in files and files["summary.json"].startswith("{")

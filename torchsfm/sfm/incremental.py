@@ -51,7 +51,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     Returns:
         A :class:`~torchsfm.reconstruction.Reconstruction` of the registered views
         (``view_indices`` maps them to the input list; ``unregistered`` gives the others with the
-        reason). Scale: the initial pair's baseline is 1.
+        reason). A set that splits into groups no verified pair links gives the largest group's
+        model, the others in ``other_models``. Scale: the initial pair's baseline is 1.
     """
     if len(images) < 2:
         raise NotEnoughDataError(f"a reconstruction needs at least 2 images, got {len(images)}")
@@ -91,6 +92,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     model = state.reconstruction
     model.timings = state.timings
     model.view_indices = [kept[v] for v in model.view_indices]
+    for other in model.other_models:
+        other.view_indices = [kept[v] for v in other.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
     model.moving_rejections_per_view = {kept[v]: count for v, count in model.moving_rejections_per_view.items()}

@@ -199,9 +199,42 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> No
 
 def map_incrementally(state, config: Config) -> Reconstruction:
     """The incremental mapper on a :class:`~torchsfm.sfm.stages.ViewSet` with verified ``pairs``,
-    ``corners``, ``raw`` corners and ``tracks``: the initial pair, then repeatedly the view that sees
-    most reconstructed tracks (a view that fails is retried after the next registration), bundle
-    adjustment, retriangulation, outlier removal and, when K was estimated, its refinement."""
+    ``corners``, ``raw`` corners and ``tracks``: one model grown by :func:`grow_model`; when views
+    are left that the model cannot reach (the set splits), another model is started from the
+    verified pairs among them, and so on. The model with most views is returned; the others are
+    its ``other_models``, largest first, and its ``unregistered`` names, for every view it lacks,
+    the separate model it belongs to or why it belongs to none."""
+    V = len(state.images)
+    grown: list[tuple[MapperState, dict[int, str]]] = []
+    remaining = torch.ones(V, dtype=torch.bool)
+    while int(remaining.sum()) >= 2:
+        try:
+            model, unregistered = grow_model(state, config, remaining)
+        except DegenerateConfigurationError:
+            if not grown:
+                raise
+            break  # the views left cannot start a model of their own: they keep their reasons
+        grown.append((model, unregistered))
+        remaining &= ~model.registered
+    grown.sort(key=lambda item: -int(item[0].registered.sum()))
+    reasons: dict[int, str] = {}
+    for _, unregistered in reversed(grown):  # the largest model's reasons last: they stand
+        reasons.update(unregistered)
+    built = [build_reconstruction(model, state.images, state.names, {}, {}) for model, _ in grown]
+    primary = built[0]
+    for k, other in enumerate(built[1:], start=1):
+        for view in other.view_indices:
+            reasons[view] = f"in separate model {k} ({other.num_views} views): no verified link to this model strong enough to register it"
+    primary.unregistered = {view: reasons[view] for view in range(V) if view not in primary.view_indices}
+    primary.other_models = built[1:]
+    return primary
+
+
+def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dict[int, str]]:
+    """One model over the ``allowed`` (V,) views: the initial pair among them, then repeatedly the
+    view that sees most reconstructed tracks (a view that fails is retried after the next
+    registration), bundle adjustment, retriangulation, outlier removal and, when K was estimated,
+    its refinement. Returns the model and, for every allowed view left out, the reason."""
     tracks, V = state.tracks, len(state.images)
     timings = state.timings
 
@@ -211,7 +244,8 @@ def map_incrementally(state, config: Config) -> Reconstruction:
         timings[name] = timings.get(name, 0.0) + time.perf_counter() - start
         return value
 
-    (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(state.pairs, state.corners, state.K, config, state.generator))
+    pairs = {(i, j): match for (i, j), match in state.pairs.items() if allowed[i] and allowed[j]}
+    (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(pairs, state.corners, state.K, config, state.generator))
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True
@@ -220,7 +254,7 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     unregistered: dict[int, str] = {}  # views that failed since the last registration: retried after the next one
     since_bundle = 0
     while True:
-        waiting = [v for v in range(V) if not model.registered[v] and v not in unregistered]
+        waiting = [v for v in range(V) if allowed[v] and not model.registered[v] and v not in unregistered]
         if not waiting:
             break
         seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
@@ -262,7 +296,7 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     if state.estimate_focal:
         timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first))
         state.report(f"focal length refined by bundle adjustment: {float(model.K[0, 0, 0]):.1f} px")
-    return build_reconstruction(model, state.images, state.names, unregistered, {})
+    return model, unregistered
 
 
 def build_reconstruction(model: MapperState, images: list[Tensor], names: list[str], unregistered: dict[int, str],

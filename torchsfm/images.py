@@ -13,7 +13,8 @@ from torchsfm.errors import InputError
 
 
 def read_image(path: str | Path) -> Tensor:
-    """Read a JPEG/PNG as (3, H, W) uint8 RGB (grey files are expanded to three channels)."""
+    """Read a JPEG/PNG as (3, H, W) uint8 RGB (a grey file's channels are one plane expanded:
+    stride 0, no copy)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"cannot read image {path}: no such file")
@@ -23,16 +24,27 @@ def read_image(path: str | Path) -> Tensor:
         raise InputError(f"cannot read image {path}: {error}") from None
     if image.dim() == 2:
         image = image[None]
-    if image.shape[0] == 1:
-        image = image.expand(3, -1, -1)
-    elif image.shape[0] == 4:
+    if image.shape[0] == 4:
         image = image[:3]
-    if image.shape[0] != 3 or image.dtype != torch.uint8:
+    if image.shape[0] not in (1, 3) or image.dtype != torch.uint8:
         raise InputError(f"cannot read image {path}: expected an 8-bit grey or colour image, got {tuple(image.shape)} {image.dtype}")
-    return image.contiguous()
+    return image.contiguous().expand(3, -1, -1)  # a grey file's three channels share one plane: no copy
+
+
+def to_unit_float(image: Tensor) -> Tensor:
+    """uint8 (values 0..255) or float images of any shape -> float32 in [0, 1]."""
+    return image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
 
 
 def to_grey(image: Tensor) -> Tensor:
     """(3, H, W) or (1, H, W) uint8/float -> (1, H, W) float32 in [0, 1]."""
-    image = image.float() / 255.0 if image.dtype == torch.uint8 else image.float()
+    image = to_unit_float(image)
     return rgb_to_grayscale(image) if image.shape[0] == 3 else image
+
+
+def to_grey_bytes(image: Tensor) -> Tensor:
+    """(3, H, W) or (1, H, W) uint8/float -> (1, H, W) uint8 grey (a quarter of float32's memory;
+    exact for grey files)."""
+    if image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0):
+        return image[:1].clone()
+    return (to_grey(image) * 255).round().to(torch.uint8)

@@ -18,9 +18,22 @@ from torchsfm.camera import check_intrinsics
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import read_image
+from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.stages import Pipeline, Progress, ViewSet, default_pipeline
 from torchsfm.validation import check_finite
+
+
+EXIF_AGREEMENT = 0.01  # the images' EXIF focal lengths are used when they agree to 1 % (one camera, one zoom)
+
+
+def shared_focal(focals: list[float | None]) -> float | None:
+    """The focal length every image's EXIF records (their median), or None if one lacks it or
+    they differ by more than ``EXIF_AGREEMENT``."""
+    if not focals or any(focal is None for focal in focals):
+        return None
+    values = torch.tensor(focals, dtype=torch.float64)
+    return float(values.median()) if float(values.max() / values.min()) <= 1 + EXIF_AGREEMENT else None
 
 
 def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, distortion: Tensor | None = None,
@@ -36,10 +49,11 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1],
             all the same size.
         K: intrinsics (3, 3) shared by all views, or (V, 3, 3); None: unknown — the principal
-            point is taken at the image centre, the focal length (shared by all views) is
+            point is taken at the image centre, the focal length (shared by all views) is the
+            one the files' EXIF records where every image has one and they agree, else it is
             estimated from the verified pairs' fundamental matrices (Mendonça & Cipolla, searched
-            around 1.2 × the larger image side) and refined by bundle adjustment; the estimate is
-            the model's ``cameras.K``. All images must then have one size.
+            around 1.2 × the larger image side); either is refined by bundle adjustment, and the
+            estimate is the model's ``cameras.K``. All images must then have one size.
         distortion: radial (k1, k2) of the camera, (2,) or (V, 2); corners are undistorted
             before any geometry (the model's keypoints are then ideal pixels).
         names: view names (default: the file names, or ``view0``, ``view1``, ...).
@@ -73,21 +87,24 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise ShapeError(f"distortion must be (2,) or ({len(images)}, 2), got {tuple(distortion.shape)}")
     distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
     check_finite(distortion=distortion)
-    loaded, kept, unreadable = [], [], {}
+    loaded, kept, unreadable, exif = [], [], {}, []
     for v, image in enumerate(images):
         if isinstance(image, (str, Path)):
             try:
-                image = read_image(image)
+                path, image = image, read_image(image)
             except InputError as error:
                 unreadable[v] = str(error)
                 continue
+            exif.append(exif_focal_pixels(path, image.shape[-1], image.shape[-2]) if estimate_focal else None)
+        else:
+            exif.append(None)
         loaded.append(image)
         kept.append(v)
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
     config = config or Config()
     state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
-                       progress=progress, estimate_focal=estimate_focal)
+                       progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif))
     state = (pipeline or default_pipeline(config))(state)
     model = state.reconstruction
     model.timings = state.timings

@@ -314,11 +314,13 @@ def build_reconstruction(model: MapperState, images: list[Tensor], names: list[s
     keep &= point_of[tracks.track] >= 0
     first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
-    stacked = torch.stack([image.expand(3, -1, -1) for image in images])  # (V, 3, H, W)
     pixel = model.raw_pixels[first_observation].round().long()
-    colours = stacked[tracks.view[first_observation], :, pixel[:, 1], pixel[:, 0]]  # (P, 3), one gather
-    if colours.dtype != torch.uint8:
-        colours = (colours.float() * 255).round().clamp(0, 255).to(torch.uint8)
+    colour_view = tracks.view[first_observation]
+    colours = torch.zeros(point_tracks.numel(), 3, dtype=torch.uint8)
+    for view in torch.unique(colour_view).tolist():  # one gather per view: no stack of every image
+        mine = colour_view == view
+        colour = images[view].expand(3, -1, -1)[:, pixel[mine, 1], pixel[mine, 0]].T
+        colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
     H, W = images[0].shape[-2:]
     return Reconstruction(
         cameras=Camera(model.K[views], model.R[views], model.t[views]),

@@ -25,6 +25,7 @@ from torch.nn import functional
 
 from torchsfm.config import HarrisConfig, PairsConfig, RansacConfig
 from torchsfm.features.harris import detect_corners
+from torchsfm.images import to_unit_float
 from torchsfm.matching.ncc import extract_patches
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
@@ -46,10 +47,12 @@ class CoarseFeatures:
 
 
 def coarse_features(greys: Tensor, config: PairsConfig) -> CoarseFeatures:
-    """Harris corners and NCC patches of (V, 1, H, W) images reduced to ``coarse_size``."""
+    """Harris corners and NCC patches of (V, 1, H, W) grey images (uint8 or float in [0, 1])
+    reduced to ``coarse_size`` (a few views at a time: no full-resolution float copy of them all)."""
     H, W = greys.shape[-2:]
     factor = max(1, round(max(H, W) / config.coarse_size))
-    small = functional.avg_pool2d(greys.float(), factor) if factor > 1 else greys.float()
+    small = torch.cat([functional.avg_pool2d(to_unit_float(greys[first:first + 8]), factor)
+                       for first in range(0, greys.shape[0], 8)])
     corners = detect_corners(small, HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1))
     patches = []
     for v in range(greys.shape[0]):
@@ -72,15 +75,14 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     """(V, V) number of mutually best coarse NCC matches above ``threshold`` (0 on the diagonal)."""
     V = features.patches.shape[0]
     scores = torch.zeros(V, V, dtype=torch.long)
-    for i in range(V):
-        ncc = torch.einsum("kd,vld->vkl", features.patches[i], features.patches)  # (V, K, K)
-        best2 = ncc.argmax(2)  # (V, K): best partner in view v of each corner of i
-        best1 = ncc.argmax(1)  # (V, K): best corner of i for each corner of v
-        mutual = best1.gather(1, best2) == torch.arange(ncc.shape[1])[None]
-        strong = ncc.gather(2, best2[..., None])[..., 0] > threshold
-        scores[i] = (mutual & strong & features.valid[i][None]).sum(1)
-    scores.fill_diagonal_(0)
-    return torch.minimum(scores, scores.T)
+    for i in range(V - 1):  # the views after i only: a mutual best match is mutual both ways
+        ncc = features.patches[i + 1:] @ features.patches[i].T  # (V - i - 1, L, K): corner l of view v, corner k of i
+        best2 = ncc.argmax(1)  # (.., K): best partner in view v of each corner of i
+        best1 = ncc.argmax(2)  # (.., L): best corner of i for each corner of v
+        mutual = best1.gather(1, best2) == torch.arange(ncc.shape[2])[None]
+        strong = ncc.gather(1, best2[:, None])[:, 0] > threshold
+        scores[i, i + 1:] = (mutual & strong & features.valid[i][None]).sum(1)
+    return scores + scores.T
 
 
 def select_pairs(scores: Tensor, config: PairsConfig) -> list[tuple[int, int]]:

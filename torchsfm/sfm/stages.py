@@ -23,12 +23,13 @@ from torch import Tensor, nn
 from torchsfm.camera import undistort_points
 from torchsfm.config import Config, HarrisConfig
 from torchsfm.errors import InputError
-from torchsfm.images import to_grey
+from torchsfm.geometry.self_calibration import intrinsics
+from torchsfm.images import to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, putative_matches, reject_moving_tracks, self_calibrate,
+from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, image_centre, putative_matches, reject_moving_tracks, self_calibrate,
                                      verify_pairs)
 
 
@@ -42,9 +43,10 @@ class ViewSet:
         K: (V, 3, 3) intrinsics (replaced by :class:`SelfCalibrate` when ``estimate_focal``).
         distortion: (V, 2) radial coefficients.
         names: view names.
-        estimate_focal: K is a placeholder to be estimated.
+        estimate_focal: K is a placeholder to be estimated; exif_focal: the focal length (px)
+            every image's EXIF records, if they agree (the estimate's start, refined later).
         generator: the random source of every RANSAC; report: progress messages.
-        greys: (V, 1, H, W) float images; raw: per view (K_v, 2) detected corners; corners:
+        greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
             the same undistorted; putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
             tracks; rejections, rejected_per_view: the moving-object decision; reconstruction:
             the result; timings: seconds per stage.
@@ -55,6 +57,7 @@ class ViewSet:
     distortion: Tensor
     names: list[str]
     estimate_focal: bool = False
+    exif_focal: float | None = None
     generator: torch.Generator = field(default_factory=lambda: torch.Generator().manual_seed(0))
     report: Progress = field(default=lambda message: None)
     greys: Tensor | None = None
@@ -71,7 +74,7 @@ class ViewSet:
     @classmethod
     def of(cls, images: list[Tensor], K: Tensor, *, distortion: Tensor | None = None, names: list[str] | None = None,
            generator: torch.Generator | None = None, progress: Progress | None = None,
-           estimate_focal: bool = False) -> ViewSet:
+           estimate_focal: bool = False, exif_focal: float | None = None) -> ViewSet:
         """A state for decoded images of one size with K (3, 3) or (V, 3, 3)."""
         V = len(images)
         sizes = {tuple(image.shape[-2:]) for image in images}
@@ -80,7 +83,7 @@ class ViewSet:
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=images, K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
-                   estimate_focal=estimate_focal, generator=generator or torch.Generator().manual_seed(0),
+                   estimate_focal=estimate_focal, exif_focal=exif_focal, generator=generator or torch.Generator().manual_seed(0),
                    report=progress or (lambda message: None))
 
 
@@ -112,7 +115,7 @@ class DetectCorners(ConfiguredStage):
     """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.greys = torch.stack([to_grey(image) for image in state.images])
+        state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
         state.report(f"corners of {len(state.images)} views")
         state.raw = detect(state.greys, self.config)
         state.corners = [undistort_points(raw.double(), state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
@@ -137,12 +140,20 @@ class VerifyPairs(ConfiguredStage):
 
 
 class SelfCalibrate(ConfiguredStage):
-    """Without K: the focal length from the verified pairs' F (principal point at the centre)."""
+    """Without K: the focal length recorded in the images' EXIF (``exif_focal``) where they have
+    one, else estimated from the verified pairs' F; the principal point at the image centre."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        if state.estimate_focal:
-            state.K = self_calibrate(state.pairs, state.images[0].shape[-2:], self.config).expand(len(state.images), 3, 3)
-            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(state.K[0, 0, 0]):.1f} px")
+        if not state.estimate_focal:
+            return state
+        size = state.images[0].shape[-2:]
+        if state.exif_focal is not None:
+            K = intrinsics(state.exif_focal, image_centre(size))
+            state.report(f"focal length from EXIF: {state.exif_focal:.1f} px")
+        else:
+            K = self_calibrate(state.pairs, size, self.config)
+            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(K[0, 0]):.1f} px")
+        state.K = K.expand(len(state.images), 3, 3)
         return state
 
 

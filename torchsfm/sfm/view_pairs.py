@@ -15,6 +15,7 @@ from torchsfm.config import Config, HarrisConfig, RansacConfig
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.features.harris import detect_corners
+from torchsfm.images import to_unit_float
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_corners
 from torchsfm.moving.imor import MovingObjectRejection
@@ -38,11 +39,11 @@ class PairMatches:
 
 
 def detect(greys: Tensor, config: HarrisConfig) -> list[Tensor]:
-    """Corners of every view, detected ``DETECTION_CHUNK`` views per batched call (the Harris
+    """Corners of every view of (V, 1, H, W) grey images (uint8 or float in [0, 1]), detected ``DETECTION_CHUNK`` views per batched call (the Harris
     response's intermediate maps of a whole video would not fit in memory at once)."""
     corners = []
     for first in range(0, greys.shape[0], DETECTION_CHUNK):
-        detected = detect_corners(greys[first:first + DETECTION_CHUNK], config)
+        detected = detect_corners(to_unit_float(greys[first:first + DETECTION_CHUNK]), config)
         corners += [detected.of_image(b) for b in range(detected.valid.shape[0])]
     return corners
 
@@ -66,7 +67,7 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
             moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
             if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
                 predicted = moved
-        matches = match_corners(greys[i], greys[j], raw[i], raw[j], config.matching, predicted)
+        matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted)
         if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
             putative[(i, j)] = (matches.index1, matches.index2)
     return putative
@@ -96,6 +97,12 @@ def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners
     return result
 
 
+def image_centre(size: tuple[int, int]) -> Tensor:
+    """The centre (2,) float64 of an image of ``size`` (H, W), in pixel coordinates."""
+    H, W = size
+    return torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
+
+
 def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, int], config: Config) -> Tensor:
     """K (3, 3) with the principal point at the image centre and the focal length that makes the
     verified pairs' essential matrices best (pairs a homography explains are left out when
@@ -103,7 +110,7 @@ def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, i
     if not pairs:
         raise DegenerateConfigurationError("no view pair could be verified, so the focal length cannot be estimated: give K")
     H, W = size
-    centre = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
+    centre = image_centre(size)
     general = [m.F for m in pairs.values() if m.homography_ratio <= config.reconstruction.max_homography_ratio]
     F = torch.stack(general or [m.F for m in pairs.values()]).double()
     return intrinsics(focal_from_fundamentals(F, centre, FOCAL_PRIOR * max(H, W)), centre)

@@ -343,6 +343,9 @@ class ReconstructionConfig:
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
     Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end;
+    with ``local_bundle_window`` W > 0, each new view that no full adjustment follows gets a local
+    adjustment of the W newest views and the points they see (the older views that see those points hold
+    them fixed), so a long sequence's poses stay adjusted at a cost bounded by W, not by its length;
     then, ``retriangulations`` times, the tracks without a point are triangulated again from the
     adjusted cameras and the model adjusted once more. The pipeline's adjustments use the robust
     ``bundle_loss`` (at ``bundle_adjustment.loss_scale`` px): real matches hold outliers that
@@ -359,6 +362,7 @@ class ReconstructionConfig:
     max_reprojection_error: float = 2.0
     min_track_views: int = 2
     bundle_every: int = 0
+    local_bundle_window: int = 0
     retriangulations: int = 1
     bundle_loss: str = "cauchy"
 
@@ -374,6 +378,7 @@ class ReconstructionConfig:
         _require(self.max_reprojection_error > 0, "max_reprojection_error", self.max_reprojection_error, "must be > 0")
         _require(self.min_track_views >= 2, "min_track_views", self.min_track_views, "must be >= 2")
         _require(self.bundle_every >= 0, "bundle_every", self.bundle_every, "must be >= 0")
+        _require(self.local_bundle_window >= 0, "local_bundle_window", self.local_bundle_window, "must be >= 0")
 
 
 @dataclass(frozen=True)

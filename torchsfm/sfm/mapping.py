@@ -137,14 +137,24 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
     raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
 
 
-def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None) -> float:
+def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None,
+           free_views: Tensor | None = None) -> float:
     """Adjust the registered cameras and the points with their inlier observations (or the
     ``usable`` (T,) ones), in place, with ``reconstruction.bundle_loss``; returns the final cost
-    per observation (px²)."""
+    per observation (px²). ``free_views`` (V,) bool: a local adjustment — only the points those
+    views see, and only those cameras move (the others that see the points hold them fixed)."""
     if usable is None:
         usable = model.observation_errors() < config.reconstruction.max_reprojection_error
-    views = torch.nonzero(model.registered).flatten()
-    tracks = torch.nonzero(model.has_point).flatten()
+    selected, fixed = model.has_point, torch.arange(len(model.corners)) == fixed_view
+    if free_views is not None:
+        selected = torch.zeros_like(model.has_point)
+        selected[model.tracks.track[usable & free_views[model.tracks.view]]] = True
+        usable = usable & selected[model.tracks.track]
+        fixed = fixed | ~free_views
+    seen = torch.zeros_like(model.registered)
+    seen[model.tracks.view[usable]] = True
+    views = torch.nonzero(seen if free_views is not None else model.registered).flatten()
+    tracks = torch.nonzero(selected).flatten()
     camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
     camera_of[views] = torch.arange(views.numel())
     point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
@@ -153,7 +163,7 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
         camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
         points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
         point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
-        fixed_cameras=views == fixed_view,
+        fixed_cameras=fixed[views],
     )
     settings = dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
     result = bundle_adjust(problem, config=settings)
@@ -252,7 +262,7 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     model.triangulate_new(second)
     state.report(f"initial pair {first}-{second}: {int(model.has_point.sum())} points")
     unregistered: dict[int, str] = {}  # views that failed since the last registration: retried after the next one
-    since_bundle = 0
+    since_bundle, order, window = 0, [first, second], config.reconstruction.local_bundle_window
     while True:
         waiting = [v for v in range(V) if allowed[v] and not model.registered[v] and v not in unregistered]
         if not waiting:
@@ -276,12 +286,17 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
             continue
         model.R[view], model.t[view] = pose.R, pose.t
         model.registered[view] = True
+        order.append(view)
         unregistered.clear()  # more points now: every view that failed gets another try
         timed("triangulation", lambda: model.triangulate_new(view))
         since_bundle += 1
         if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
             timed("bundle adjustment", lambda: bundle(model, config, first))
             since_bundle = 0
+        elif window and len(order) > window:  # the model outgrew the window: adjust the newest views only
+            free = torch.zeros_like(model.registered)
+            free[order[-window:]] = True
+            timed("local bundle adjustment", lambda: bundle(model, config, first, free_views=free))
     state.report(f"bundle adjustment of {int(model.registered.sum())} views and {int(model.has_point.sum())} points")
     timed("bundle adjustment", lambda: bundle(model, config, first))
     for _ in range(config.reconstruction.retriangulations):  # the adjusted cameras triangulate tracks the early ones could not

@@ -6,7 +6,8 @@ import torch
 import torchsfm
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.evaluation import camera_errors
-from torchsfm.io.datasets import read_strecha
+from torchsfm.config import Config, with_overrides
+from torchsfm.io.datasets import read_kitti_odometry, read_strecha
 from torchsfm.visualization import write_png
 
 
@@ -114,3 +115,19 @@ def test_a_set_that_splits_gives_one_model_per_group_the_largest_first(shared_da
         errors = camera_errors(part.cameras.R, part.cameras.t, sequence.R[views], sequence.t[views])
         assert float(errors.rotation.max()) < 0.5  # degrees
         assert float(errors.centre.max()) / errors.extent < 0.02
+
+
+def test_forward_motion_too_slow_for_any_matched_pair_starts_from_a_wider_pair(shared_data):
+    """KITTI frames matched only with their neighbour: every matched pair triangulates at about
+    1 deg (< 2 deg needed), as on a motorway; the mapper then verifies frames further apart along
+    the same tracks and starts from one, registering every frame."""
+    sequence = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
+    config = with_overrides(Config(), ["pairs.mode=sequential", "pairs.window=1"])
+    messages = []
+    model = torchsfm.reconstruct(sequence.images[:12], sequence.K[0], config=config, generator=torch.Generator().manual_seed(0),
+                                 progress=messages.append)
+    assert any("wider pairs linked through tracks" in message for message in messages)
+    assert model.view_indices == list(range(12))
+    errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[:12], sequence.t[:12])
+    assert float(errors.centre.max()) / errors.extent < 0.01
+    assert float(errors.rotation.max()) < 1.0  # degrees

@@ -1,6 +1,7 @@
 import torch
+from torch.testing import assert_close
 
-from torchsfm.sfm.tracks import build_tracks
+from torchsfm.sfm.tracks import Tracks, build_tracks
 
 
 def test_matches_chain_into_tracks_and_conflicts_are_dropped():
@@ -24,3 +25,22 @@ def test_matches_chain_into_tracks_and_conflicts_are_dropped():
 def test_no_matches_no_tracks():
     tracks = build_tracks([3, 3], {})
     assert tracks.num_tracks == 0 and tracks.view.numel() == 0
+
+
+def test_covisibility_shared_corners_and_disparity_of_every_view_pair():
+    """Three views, three tracks: track 0 in views 0, 1, 2; track 1 in views 0, 2; track 2 in
+    views 1, 2. Corners move by known amounts, so the RMS displacements are known exactly."""
+    from torchsfm.sfm.mapping import rms_disparity
+
+    tracks = Tracks(view=torch.tensor([0, 1, 2, 0, 2, 1, 2]), corner=torch.tensor([0, 0, 0, 1, 1, 1, 2]),
+                    track=torch.tensor([0, 0, 0, 1, 1, 2, 2]), num_tracks=3)
+    corners = [torch.tensor([[0.0, 0.0], [10.0, 0.0]]), torch.tensor([[3.0, 4.0], [5.0, 5.0]]),
+               torch.tensor([[6.0, 8.0], [10.0, 1.0], [5.0, 5.0]])]
+    counts = tracks.covisibility(3)
+    assert counts.tolist() == [[0, 1, 2], [1, 0, 2], [2, 2, 0]]
+    corner0, corner2 = tracks.shared(0, 2)
+    assert corner0.tolist() == [0, 1] and corner2.tolist() == [0, 1]
+    disparity = rms_disparity(tracks, tracks.gather(corners).double(), 3, counts)
+    expected = torch.tensor([[0.0, 5.0, ((100 + 1) / 2) ** 0.5], [5.0, 0.0, ((25 + 0) / 2) ** 0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    expected[2, :2] = expected[:2, 2]
+    assert_close(disparity, expected, rtol=0, atol=1e-9)

@@ -20,11 +20,12 @@ from torchsfm.reconstruction import Reconstruction
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import estimate_absolute_pose
 from torchsfm.sfm.tracks import Tracks
-from torchsfm.sfm.view_pairs import PairMatches
+from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 
 FOCAL_REFINEMENT_RANGE = 1.1  # the bundle-adjusted profile searches f / 1.1 .. f × 1.1
 PRINCIPAL_POINT_RANGE = 0.02  # ... and the principal point ± 2% of the image's larger side
 INTRINSICS_REFINEMENT_STEPS = 10
+WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 
 
 def triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
@@ -79,7 +80,8 @@ class MapperState:
         partner_observation = candidates[track_of] & self.registered[view_of] & (view_of != view)
         if not bool(partner_observation.any()):
             return 0
-        distances = torch.stack([(self.centre(v) - self.centre(view)).norm() for v in range(len(self.corners))])
+        centres = -(self.R.transpose(1, 2) @ self.t[..., None])[..., 0]  # (V, 3)
+        distances = (centres - centres[view]).norm(dim=-1)
         # for every candidate track: its registered partner observation farthest from the view
         score = torch.where(partner_observation, distances[view_of], -1.0)
         best = torch.full((self.tracks.num_tracks,), -1.0, dtype=torch.float64).scatter_reduce(0, track_of, score, "amax")
@@ -135,6 +137,34 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
             continue
         return (i, j), pose.R, pose.t, "; ".join(rejected)
     raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
+
+
+def pairs_through_tracks(state, config: Config, allowed: Tensor, exclude: dict) -> dict[tuple[int, int], PairMatches]:
+    """Verified matches of view pairs that were not matched directly but share at least
+    ``min_pair_inliers`` tracks (chained through the views between them): the
+    ``WIDER_PAIR_CANDIDATES`` of widest median disparity, verified like matched pairs. Under
+    forward motion or a slow camera, neighbouring frames have too little parallax to start a model;
+    frames further apart along the same tracks have more."""
+    tracks, V = state.tracks, len(state.images)
+    counts = tracks.covisibility(V)
+    disparity = rms_disparity(tracks, tracks.gather(state.raw), V, counts)
+    usable = (counts >= config.reconstruction.min_pair_inliers) & allowed[:, None] & allowed[None, :]
+    usable = usable.triu(1)
+    for i, j in exclude:
+        usable[i, j] = False
+    candidates = torch.nonzero(usable)
+    widest = candidates[torch.argsort(disparity[usable], descending=True)[:WIDER_PAIR_CANDIDATES]].tolist()
+    return verify_pairs({(i, j): tracks.shared(i, j) for i, j in widest}, state.corners, config, state.generator, state.report)
+
+
+def rms_disparity(tracks: Tracks, pixels: Tensor, num_views: int, counts: Tensor) -> Tensor:
+    """(V, V) RMS displacement (px) between two views of the tracks seen in both (``pixels`` (T,
+    2) their observations, ``counts`` (V, V) how many), for every pair at once from sums over
+    shared tracks: Σ |x_i - x_j|² = Σ |x_i|² + Σ |x_j|² - 2 Σ x_i · x_j."""
+    ones, square = torch.ones(pixels.shape[0], dtype=torch.float64), (pixels.double() ** 2).sum(-1)
+    square_sum = tracks.pair_sums(num_views, square, ones)
+    cross = sum(tracks.pair_sums(num_views, pixels[:, k], pixels[:, k]) for k in range(2))
+    return ((square_sum + square_sum.T - 2 * cross).clamp_min(0) / counts.clamp_min(1)).sqrt()
 
 
 def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None,
@@ -255,7 +285,15 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         return value
 
     pairs = {(i, j): match for (i, j), match in state.pairs.items() if allowed[i] and allowed[j]}
-    (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(pairs, state.corners, state.K, config, state.generator))
+    try:
+        (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(pairs, state.corners, state.K, config, state.generator))
+    except DegenerateConfigurationError as error:  # e.g. forward motion: the matched pairs are too close together
+        wider = timed("initial pair", lambda: pairs_through_tracks(state, config, allowed, exclude=pairs))
+        state.report(f"no matched pair can start the model; trying {len(wider)} wider pairs linked through tracks")
+        try:
+            (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(wider, state.corners, state.K, config, state.generator))
+        except DegenerateConfigurationError as second_error:
+            raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error})") from None
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True
@@ -264,13 +302,14 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     unregistered: dict[int, str] = {}  # views that failed since the last registration: retried after the next one
     since_bundle, order, window = 0, [first, second], config.reconstruction.local_bundle_window
     while True:
-        waiting = [v for v in range(V) if allowed[v] and not model.registered[v] and v not in unregistered]
-        if not waiting:
+        waiting = allowed & ~model.registered
+        waiting[list(unregistered)] = False
+        if not bool(waiting.any()):
             break
         seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
-        view = max(waiting, key=lambda v: int(seen[v]))
+        view = int(torch.where(waiting, seen, -1).argmax())  # the first of the views that see most
         if int(seen[view]) < config.reconstruction.min_resection_inliers:
-            for v in waiting:
+            for v in torch.nonzero(waiting).flatten().tolist():
                 unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers})"
             break
         state.report(f"registering view {view} ({state.names[view]}) from {int(seen[view])} points")

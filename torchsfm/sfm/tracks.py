@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+PAIR_SUM_CHUNK = 4096  # tracks per dense (views × tracks) table of Tracks.pair_sums
+
 
 @dataclass
 class Tracks:
@@ -29,6 +31,35 @@ class Tracks:
         mine = self.view == view
         table[self.corner[mine]] = self.track[mine]
         return table
+
+    def pair_sums(self, num_views: int, left: Tensor, right: Tensor) -> Tensor:
+        """(V, V) float64: for views i, j, the sum over the tracks seen in both of ``left`` at the
+        track's observation in i times ``right`` at its observation in j (``left``, ``right``
+        (T,) per observation). Dense (V × tracks) tables, a chunk of tracks at a time."""
+        total = torch.zeros(num_views, num_views, dtype=torch.float64)
+        bounds = torch.searchsorted(self.track, torch.arange(0, self.num_tracks + PAIR_SUM_CHUNK, PAIR_SUM_CHUNK)).tolist()
+        for chunk, (start, end) in enumerate(zip(bounds[:-1], bounds[1:])):
+            if start == end:
+                continue
+            where = (self.view[start:end], self.track[start:end] - chunk * PAIR_SUM_CHUNK)
+            a = torch.zeros(num_views, PAIR_SUM_CHUNK, dtype=torch.float64).index_put_(where, left[start:end].double())
+            b = torch.zeros(num_views, PAIR_SUM_CHUNK, dtype=torch.float64).index_put_(where, right[start:end].double())
+            total += a @ b.T
+        return total
+
+    def covisibility(self, num_views: int) -> Tensor:
+        """(V, V) int64: the number of tracks seen in both views (0 on the diagonal)."""
+        ones = torch.ones(self.view.numel(), dtype=torch.float64)
+        return self.pair_sums(num_views, ones, ones).round().long().fill_diagonal_(0)
+
+    def shared(self, view1: int, view2: int) -> tuple[Tensor, Tensor]:
+        """Corner indices (M,), (M,) in view1 and view2 of the M tracks seen in both."""
+        in1, in2 = self.view == view1, self.view == view2
+        both = torch.isin(self.track[in1], self.track[in2])
+        tracks = self.track[in1][both]
+        corner2 = torch.full((self.num_tracks,), -1, dtype=torch.long)
+        corner2[self.track[in2]] = self.corner[in2]
+        return self.corner[in1][both], corner2[tracks]
 
     def lengths(self) -> Tensor:
         """(num_tracks,) number of views of every track."""
@@ -74,10 +105,12 @@ def build_tracks(num_corners: list[int], matches: dict[tuple[int, int], tuple[Te
             labels = updated
     component_size = torch.bincount(labels, minlength=total)
     in_component = component_size[labels] >= 2
-    # a consistent component has exactly one corner per view it touches
-    per_view = torch.zeros(total, len(num_corners), dtype=torch.long).index_put_((labels, views_of), torch.ones(total, dtype=torch.long), accumulate=True)
-    consistent = (per_view <= 1).all(-1)[labels]
-    keep = in_component & consistent
+    # a consistent component has exactly one corner per view it touches (no (corners × views) table: long videos)
+    _, inverse, repeats = torch.unique(labels[in_component] * len(num_corners) + views_of[in_component],
+                                       return_inverse=True, return_counts=True)
+    consistent = torch.ones(total, dtype=torch.bool)
+    consistent[labels[in_component][repeats[inverse] > 1]] = False
+    keep = in_component & consistent[labels]
     components, track = torch.unique(labels[keep], return_inverse=True)
     order = torch.argsort(track, stable=True)
     global_ids = torch.nonzero(keep).flatten()[order]

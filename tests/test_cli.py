@@ -105,10 +105,11 @@ def test_reconstruct_command_writes_the_model_and_a_summary(shared_data, tmp_pat
     folder = shared_data / "strecha_fountain_P11"
     images = [str(folder / f"000{v}.jpg") for v in range(4)]
     out = tmp_path / "sequence"
-    assert main(["reconstruct", *images, "--K", str(K_FILE), "--out", str(out)]) == 0
+    assert main(["reconstruct", *images, "--K", str(K_FILE), "--sequential", "--out", str(out)]) == 0
     assert {p.name for p in out.iterdir()} == {"model.wrl", "points.ply", "colmap", "summary.json"}
     summary = json.loads((out / "summary.json").read_text())
     assert summary["views_registered"] == 4 and summary["points"] > 500
+    assert summary["config"]["pairs"]["mode"] == "sequential" and summary["other_models"] == []
     assert set(summary["seconds"]) >= {"DetectCorners", "MatchPairs", "VerifyPairs", "MapIncrementally", "bundle adjustment", "total"}
     captured = capsys.readouterr()
     assert "registering view" in captured.err and "4 views registered" in captured.out

@@ -28,7 +28,9 @@ def _config(args: argparse.Namespace):
     from torchsfm.config import Config, load_config, with_overrides
 
     config = load_config(args.config) if args.config else Config()
-    return with_overrides(config, args.set + (["moving_objects.enabled=true"] if args.moving_objects else []))
+    flags = (["moving_objects.enabled=true"] if args.moving_objects else []) + (
+        ["pairs.mode=sequential"] if getattr(args, "sequential", False) else [])
+    return with_overrides(config, args.set + flags)
 
 
 def _print_summary(summary: dict, out: Path) -> None:
@@ -110,6 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     sequence = commands.add_parser("reconstruct", help="reconstruct a calibrated image sequence")
     sequence.add_argument("images", nargs="+", type=Path, help="image files and/or folders of images, in sequence order")
     _job_options(sequence, K_required=False)
+    sequence.add_argument("--sequential", action="store_true",
+                          help="a video: match each frame with the next pairs.window frames only (pairs.mode=sequential)")
     sequence.set_defaults(run=_reconstruct)
 
     calibrate = commands.add_parser("calibrate", help="calibrate a camera from chessboard photos (Zhang's method)")

@@ -17,13 +17,13 @@ def _bundled_greys() -> torch.Tensor:
 
 def test_pair_modes():
     scores = torch.tensor([[0, 50, 0, 40], [50, 0, 30, 0], [0, 30, 0, 20], [40, 0, 20, 0]])
-    assert select_pairs(scores, PairsConfig(mode="sequential", window=2)) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
-    assert len(select_pairs(scores, PairsConfig(mode="exhaustive"))) == 6
-    assert len(select_pairs(scores, PairsConfig(mode="auto", exhaustive_up_to=4))) == 6
+    assert select_pairs(scores, PairsConfig(mode="sequential", window=2), 4) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    assert len(select_pairs(scores, PairsConfig(mode="exhaustive"), 4)) == 6
+    assert len(select_pairs(scores, PairsConfig(mode="auto", exhaustive_up_to=4), 4)) == 6
     # similarity: each view's best partner (0-3 is far apart in the file order) and the window
     # pairs that score at least min_score (2-3 scores 20: kept; 1-2 scores 30: kept)
-    assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=12)) == [(0, 1), (0, 3), (1, 2), (2, 3)]
-    assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=25)) == [(0, 1), (0, 3), (1, 2)]
+    assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=12), 4) == [(0, 1), (0, 3), (1, 2), (2, 3)]
+    assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=25), 4) == [(0, 1), (0, 3), (1, 2)]
 
 
 def test_related_views_score_higher_than_an_unrelated_one():

@@ -1,4 +1,4 @@
-"""The N-view pipeline as stages: run a prefix, swap a stage for a user-written one."""
+"""The pipelines as stages: run a prefix, swap a stage for a user-written one, insert one."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import torchsfm
 from torchsfm.actions import SAMPLE
 from torchsfm.images import read_image
 from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline
+from torchsfm.sfm.two_view import PairState, TwoViewReconstruction
 from torchsfm.sfm.view_pairs import putative_matches
 
 K = torch.tensor([[689.87, 0.0, 380.0], [0.0, 691.04, 251.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -49,3 +50,23 @@ def test_swapping_a_stage():
     model = torchsfm.reconstruct(_images(), K, pipeline=pipeline)
     assert mine.calls == 1 and model.num_views == 3 and model.num_points > 300
     assert "OnlyConsecutivePairs" in model.timings
+
+
+class LeftHalfOnly(nn.Module):
+    """A user's stage for the two-view pipeline: keep the matches in image1's left half."""
+
+    def forward(self, state: PairState) -> PairState:
+        state.static &= state.x1[:, 0] < state.images[0].shape[-1] / 2
+        return state
+
+
+def test_two_view_stages_insert_a_user_stage():
+    images = _images()
+    pipeline = TwoViewReconstruction()
+    assert [type(stage).__name__ for stage in pipeline.stages] == [
+        "DetectPairCorners", "MatchPair", "RejectMovingMatches", "EstimatePose", "BuildPairModel"]
+    pipeline.stages.insert(2, LeftHalfOnly())
+    model = pipeline(images[0], images[1], K, generator=torch.Generator().manual_seed(0))
+    first_view = model.keypoints[model.observation_views == 0]
+    assert model.num_points > 50 and bool((first_view[:, 0] < images[0].shape[-1] / 2).all())
+    assert "LeftHalfOnly" in model.timings

@@ -85,9 +85,10 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     return scores + scores.T
 
 
-def select_pairs(scores: Tensor, config: PairsConfig) -> list[tuple[int, int]]:
-    """View pairs (i < j) to verify, from the coarse scores (V, V) and ``config.mode``."""
-    V = scores.shape[0]
+def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> list[tuple[int, int]]:
+    """View pairs (i < j) of ``num_views`` to verify, from the coarse scores (V, V) and
+    ``config.mode`` (``sequential`` and ``exhaustive`` need no scores: None)."""
+    V = num_views
     mode = config.mode
     if mode == "auto":
         mode = "exhaustive" if V <= config.exhaustive_up_to else "similarity"

@@ -14,20 +14,20 @@ config sections it uses.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
 
 from torchsfm.camera import undistort_points
-from torchsfm.config import Config, HarrisConfig
+from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.images import to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
+from torchsfm.sfm.pipeline import ConfiguredStage, Pipeline
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, image_centre, putative_matches, reject_moving_tracks, self_calibrate,
                                      verify_pairs)
@@ -85,30 +85,6 @@ class ViewSet:
         return cls(images=images, K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
                    estimate_focal=estimate_focal, exif_focal=exif_focal, generator=generator or torch.Generator().manual_seed(0),
                    report=progress or (lambda message: None))
-
-
-class Pipeline(nn.Sequential):
-    """Stages run in order on a :class:`ViewSet`; each stage's seconds go to ``state.timings``
-    under its class name."""
-
-    def forward(self, state: ViewSet) -> ViewSet:
-        for stage in self:
-            start = time.perf_counter()
-            state = stage(state)
-            name = type(stage).__name__
-            state.timings[name] = state.timings.get(name, 0.0) + time.perf_counter() - start
-        return state
-
-
-class ConfiguredStage(nn.Module):
-    """A stage holding the config (section) it uses; ``repr`` shows it."""
-
-    def __init__(self, config: Config | HarrisConfig) -> None:
-        super().__init__()
-        self.config = config
-
-    def extra_repr(self) -> str:
-        return type(self.config).__name__
 
 
 class DetectCorners(ConfiguredStage):

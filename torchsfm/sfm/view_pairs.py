@@ -57,7 +57,8 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs)."""
     features = coarse_features(greys, config.pairs)
-    pairs = select_pairs(pair_scores(features, config.pairs.ncc_threshold), config.pairs)
+    scores = None if config.pairs.mode in ("sequential", "exhaustive") else pair_scores(features, config.pairs.ncc_threshold)
+    pairs = select_pairs(scores, config.pairs, greys.shape[0])
     putative = {}
     for i, j in pairs:
         report(f"matching views {i} and {j}")

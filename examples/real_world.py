@@ -8,7 +8,7 @@ the ground truth (centre error as a share of the path extent, rotation error; me
 maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping).
 
-    python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap]
+    python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap] [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 
 import torchsfm
+from torchsfm.config import with_overrides
 from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import StrechaSequence, read_kitti_odometry, read_strecha
@@ -59,10 +60,11 @@ def errors_row(R: torch.Tensor, t: torch.Tensor, sequence: StrechaSequence, inde
             f"rotation {float(errors.rotation.median()):.3f} deg (max {float(errors.rotation.max()):.3f}), consecutive rel. rot. {step} deg")
 
 
-def run_torchsfm(sequence: StrechaSequence, with_K: bool) -> str:
+def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Config) -> str:
     start = time.perf_counter()
     try:
-        model = torchsfm.reconstruct(sequence.images, sequence.K if with_K else None, generator=torch.Generator().manual_seed(0))
+        model = torchsfm.reconstruct(sequence.images, sequence.K if with_K else None, config=config,
+                                     generator=torch.Generator().manual_seed(0))
     except TorchSfmError as error:
         return f"failed: {error} ({time.perf_counter() - start:.1f} s)"
     seconds = time.perf_counter() - start
@@ -120,13 +122,15 @@ def main() -> None:
     parser.add_argument("--no-K", action="store_true", help="reconstruct without the intrinsics")
     parser.add_argument("--no-colmap", action="store_true")
     parser.add_argument("--work", type=Path, default=Path("outputs/real_world"))
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one torchsfm config value")
     args = parser.parse_args()
+    config = with_overrides(torchsfm.Config(), args.set)
     chosen = cases(args.data)
     names = [name for name in args.cases.split(",") if name] or list(chosen)
     for name in names:
         sequence = chosen[name]
         print(f"{name} ({len(sequence.images)} images)")
-        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K)}", flush=True)
+        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config)}", flush=True)
         if not args.no_colmap:
             print(f"  pycolmap: {run_pycolmap(sequence, args.work / name)}", flush=True)
 

@@ -301,7 +301,9 @@ class PairsConfig:
     ``coarse_size`` px on the long side, ``coarse_corners`` Harris corners, NCC on
     (2 ``patch_half_size`` + 1)² patches, mutual best above ``ncc_threshold``. ``guided``: a
     homography fitted to the coarse matches (``homography_threshold`` px, at least ``min_score``
-    inliers) centres the full-resolution search disc of every corner on its predicted position.
+    inliers) centres the full-resolution search disc of every corner on its predicted position;
+    with ``warp_patches``, each corner's NCC patch is also warped by the homography's local
+    affine map, so rotation, scale and foreshortening between the views are undone.
     """
 
     mode: str = "auto"
@@ -315,6 +317,7 @@ class PairsConfig:
     ncc_threshold: float = 0.8
     homography_threshold: float = 8.0
     guided: bool = True
+    warp_patches: bool = False
 
     def __post_init__(self) -> None:
         _require(self.mode in ("auto", "sequential", "exhaustive", "similarity"), "mode", self.mode,

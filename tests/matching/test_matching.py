@@ -79,3 +79,40 @@ def test_relaxation_prefers_the_geometrically_consistent_candidates(mode):
 def test_matcher_is_a_module():
     matcher = PutativeMatcher(MatchingConfig(strength="ncc"))
     assert isinstance(matcher, torch.nn.Module) and "strength='ncc'" in repr(matcher)
+
+
+def test_affine_warped_patches_match_through_rotation_and_scale():
+    """The bundled fountain view against itself rotated by 30 deg and scaled by 1.5 (with a
+    little perspective): with the disc centred on the true homography's prediction, plain NCC
+    patches find almost no correct match; patches warped by the homography's local affine map
+    find most of those found without any motion (measured: 806 vs 3 within 1.5 px)."""
+    import math
+
+    import kornia
+
+    from torchsfm.actions import SAMPLE
+    from torchsfm.camera import from_homogeneous, to_homogeneous
+    from torchsfm.config import HarrisConfig, MatchingConfig
+    from torchsfm.features.harris import detect_corners
+    from torchsfm.images import read_image, to_grey
+    from torchsfm.matching.matcher import match_corners
+    from torchsfm.sfm.view_pairs import patch_warps
+
+    image = to_grey(read_image(SAMPLE / "0004.jpg"))
+    height, width = image.shape[-2:]
+    angle, scale = math.radians(30), 1.5
+    A = scale * torch.tensor([[math.cos(angle), -math.sin(angle)], [math.sin(angle), math.cos(angle)]], dtype=torch.float64)
+    centre = torch.tensor([width / 2, height / 2], dtype=torch.float64)
+    H = torch.eye(3, dtype=torch.float64)
+    H[:2, :2], H[:2, 2], H[2, 0] = A, centre - A @ centre, 2e-4
+    moved = kornia.geometry.transform.warp_perspective(image[None], H[None].float(), (height, width), align_corners=True)[0]
+    points1 = detect_corners(image[None], HarrisConfig()).of_image(0).double()
+    points2 = detect_corners(moved[None], HarrisConfig()).of_image(0).double()
+    predicted = from_homogeneous(to_homogeneous(points1) @ H.T)
+
+    def correct(warp):
+        matches = match_corners(image, moved, points1, points2, MatchingConfig(), predicted, warp)
+        return int(((predicted[matches.index1] - points2[matches.index2]).norm(dim=-1) < 1.5).sum())
+
+    plain, warped = correct(None), correct(patch_warps(H, points1))
+    assert plain < 50 and warped > 600

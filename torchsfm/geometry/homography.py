@@ -31,3 +31,11 @@ def transfer_error(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     mapped = to_homogeneous(x1) @ H.transpose(-1, -2)
     error = (from_homogeneous(mapped) - x2).square().sum(-1)
     return torch.where(mapped[..., 2].abs() > 1e-12, error, torch.full_like(error, float("inf")))
+
+
+def homography_jacobian(H: Tensor, x: Tensor) -> Tensor:
+    """(N, 2, 2) derivative of the mapping x -> H x (pixels to pixels) at points x (N, 2): the
+    local affine approximation of the homography (3, 3) there."""
+    h = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1) @ H.T  # (N, 3)
+    mapped = h[:, :2] / h[:, 2:]
+    return (H[None, :2, :2] - mapped[:, :, None] * H[None, 2:, :2]) / h[:, 2, None, None]

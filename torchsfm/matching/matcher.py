@@ -29,11 +29,13 @@ class PutativeMatches:
 
 
 def match_corners(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor,
-                  config: MatchingConfig | None = None, predicted1: Tensor | None = None) -> PutativeMatches:
+                  config: MatchingConfig | None = None, predicted1: Tensor | None = None,
+                  warp1: Tensor | None = None) -> PutativeMatches:
     """Putative matches between the corners of two grey images (1, H, W) (Algorithm 3.2.2);
-    ``predicted1`` (N1, 2) centres the search discs (see :func:`ncc_candidates`)."""
+    ``predicted1`` (N1, 2) centres the search discs and ``warp1`` (N1, 2, 2) warps image 1's
+    patches (see :func:`ncc_candidates`)."""
     config = config or MatchingConfig()
-    candidates = ncc_candidates(image1, image2, points1, points2, config, predicted1)
+    candidates = ncc_candidates(image1, image2, points1, points2, config, predicted1, warp1)
     strength = strength_measure(points1, points2, candidates, config) if config.strength == "sm" else candidates.score
     index1, index2 = relaxation(candidates, strength, (points1.shape[0], points2.shape[0]), config)
     return PutativeMatches(index1=index1, index2=index2, candidates=candidates, strength=strength)

@@ -33,13 +33,16 @@ class CandidateMatches:
     ncc: Tensor
 
 
-def extract_patches(image: Tensor, points: Tensor, half_size: int) -> Tensor:
+def extract_patches(image: Tensor, points: Tensor, half_size: int, warp: Tensor | None = None) -> Tensor:
     """Zero-mean, unit-norm square patches around sub-pixel points.
 
     Args:
         image: (1, H, W) grey image.
         points: (K, 2) pixel positions (x, y).
         half_size: n; patches are (2n + 1)².
+        warp: (K, 2, 2) per point, the linear map from patch offsets to image offsets (a patch
+            warped by a local affine transform, e.g. to look as the other view sees it);
+            default: the identity.
 
     Returns:
         (K, (2n + 1)²) patches; a constant patch becomes all zeros (it correlates with nothing).
@@ -47,7 +50,9 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int) -> Tensor:
     H, W = image.shape[-2:]
     offsets = torch.arange(-half_size, half_size + 1, dtype=points.dtype, device=points.device)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
-    grid = points[:, None, :] + torch.stack([dx.flatten(), dy.flatten()], dim=-1)[None]  # (K, P, 2)
+    steps = torch.stack([dx.flatten(), dy.flatten()], dim=-1)  # (P, 2)
+    steps = steps[None] if warp is None else steps @ warp.to(points.dtype).transpose(1, 2)  # (1 or K, P, 2)
+    grid = points[:, None, :] + steps  # (K, P, 2)
     normalized = torch.stack([2 * grid[..., 0] / (W - 1) - 1, 2 * grid[..., 1] / (H - 1) - 1], dim=-1)
     samples = functional.grid_sample(image[None].to(points.dtype), normalized[None], mode="bilinear",
                                      padding_mode="border", align_corners=True)[0, 0]  # (K, P)
@@ -57,7 +62,8 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int) -> Tensor:
 
 
 def ncc_candidates(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor,
-                   config: MatchingConfig | None = None, predicted1: Tensor | None = None) -> CandidateMatches:
+                   config: MatchingConfig | None = None, predicted1: Tensor | None = None,
+                   warp1: Tensor | None = None) -> CandidateMatches:
     """All pairs within the search disc whose NCC exceeds the threshold (Alg. 3.2.2 step 1).
 
     Args:
@@ -66,12 +72,15 @@ def ncc_candidates(image1: Tensor, image2: Tensor, points1: Tensor, points2: Ten
         config: patch size, search radius, score threshold.
         predicted1: (N1, 2) where the corners of image 1 are expected in image 2 (the disc's
             centres; default: their own positions).
+        warp1: (N1, 2, 2) the local affine map from image 2's offsets to image 1's around each
+            corner of image 1 (its patch is sampled as image 2 would see it: rotation, scale and
+            foreshortening undone); default: none.
 
     Returns:
         :class:`CandidateMatches`.
     """
     config = config or MatchingConfig()
-    patches1 = extract_patches(image1, points1, config.patch_half_size)
+    patches1 = extract_patches(image1, points1, config.patch_half_size, warp1)
     patches2 = extract_patches(image2, points2, config.patch_half_size)
     ncc = patches1 @ patches2.T  # (N1, N2): eq. 3.2.4 (the (2n+1)² σσ normalization is in the unit norms)
     centres = points1 if predicted1 is None else predicted1.to(points1.dtype)

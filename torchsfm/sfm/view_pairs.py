@@ -16,6 +16,7 @@ from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.features.harris import detect_corners
 from torchsfm.images import to_unit_float
+from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_corners
 from torchsfm.moving.imor import MovingObjectRejection
@@ -27,6 +28,7 @@ from torchsfm.sfm.tracks import Tracks
 
 Progress = Callable[[str], None]
 DETECTION_CHUNK = 8  # views per batched Harris call
+MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
 FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a common camera's field of view)
 
 
@@ -62,16 +64,34 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     putative = {}
     for i, j in pairs:
         report(f"matching views {i} and {j}")
-        predicted = None
+        predicted = warp = None
         H = predicted_homography(features, i, j, config.pairs, generator) if config.pairs.guided else None
         if H is not None:
             moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
             if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
                 predicted = moved
-        matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted)
+            if config.pairs.warp_patches:
+                warp = patch_warps(H, raw[i].double())
+        matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted, warp)
         if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
             putative[(i, j)] = (matches.index1, matches.index2)
     return putative
+
+
+def patch_warps(H: Tensor, points: Tensor) -> Tensor | None:
+    """(N, 2, 2) per point (N, 2) of view i, the affine map from view j's patch offsets to view
+    i's: the inverse of the homography's local Jacobian, so that view i's patch is sampled as
+    view j sees it. Points where the local map is a reflection or scales by more than
+    ``MAX_PATCH_SCALE`` (the homography is a poor local model there) keep the identity; None
+    when no point needs a warp (every map within 5 % of the identity)."""
+    jacobian = homography_jacobian(H, points)
+    determinant = torch.linalg.det(jacobian)
+    usable = (determinant > MAX_PATCH_SCALE ** -2) & (determinant < MAX_PATCH_SCALE ** 2)
+    identity = torch.eye(2, dtype=jacobian.dtype).expand_as(jacobian)
+    warp = torch.where(usable[:, None, None], torch.linalg.inv(torch.where(usable[:, None, None], jacobian, identity)), identity)
+    if float((warp - identity).abs().amax()) < 0.05:
+        return None
+    return warp
 
 
 def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners: list[Tensor], config: Config,

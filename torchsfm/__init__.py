@@ -7,6 +7,9 @@ Stable entry points (outside code calls these):
 * :func:`triangulate` — 3-D points from two views by any method of thesis §3.5.
 * :func:`estimate_absolute_pose` — a calibrated camera from 3-D↔2-D pairs.
 * :func:`reconstruct` — a calibrated image sequence to cameras and points.
+* :func:`reconstruct_tracks` — the same from (F, N, 2) tracks with gaps.
+* :func:`reconstruct_motions` — one model per rigid motion of tracks: the static scene and
+  each moving body in its own frame.
 * :func:`bundle_adjust`, :func:`torchsfm.io.read_bal` — sparse bundle adjustment.
 * :func:`reject_moving_objects` — IMOR + RANSAC on points tracked over three frames.
 * :func:`reject_moving_objects_in_tracks` — the same over whole tracks with gaps.
@@ -32,6 +35,7 @@ from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.whole_track import TrackRejection, reject_moving_objects_in_tracks
 from torchsfm.optim.bundle import BundleProblem, BundleResult, bundle_adjust
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
+from torchsfm.sfm.from_tracks import MotionModels, reconstruct_motions, reconstruct_tracks
 from torchsfm.sfm.incremental import reconstruct
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.estimators.two_view_geometry import (
@@ -56,6 +60,7 @@ __all__ = [
     "DegenerateConfigurationError",
     "FundamentalEstimate",
     "InputError",
+    "MotionModels",
     "MotionSegmentation",
     "MovingObjectRejection",
     "NotEnoughDataError",
@@ -76,6 +81,8 @@ __all__ = [
     "estimate_relative_pose",
     "load_config",
     "reconstruct",
+    "reconstruct_motions",
+    "reconstruct_tracks",
     "reject_moving_objects",
     "reject_moving_objects_in_tracks",
     "segment_motions",

@@ -36,6 +36,8 @@ class Reconstruction:
             seen in all three.
         moving_rejections_per_view: multi-view models with the rejection on: per input view, its
             track observations rejected as moving (or untestable) by the whole-track decision.
+        point_tracks: multi-view models only: (P,) int64, the track each point triangulates
+            (the input track index for :func:`~torchsfm.sfm.from_tracks.reconstruct_tracks`).
         other_models: multi-view models only: the separate models of views this model could not
             reach (the set split), largest first, each with its own ``view_indices`` (input views)
             and frame; empty when every reconstructed view is in this one.
@@ -56,6 +58,7 @@ class Reconstruction:
     timings: dict[str, float] = field(default_factory=dict)
     moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
     moving_rejections_per_view: dict[int, int] = field(default_factory=dict)
+    point_tracks: Tensor | None = None
     other_models: list[Reconstruction] = field(default_factory=list)
 
     @property

@@ -131,3 +131,14 @@ def test_forward_motion_too_slow_for_any_matched_pair_starts_from_a_wider_pair(s
     errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[:12], sequence.t[:12])
     assert float(errors.centre.max()) / errors.extent < 0.01
     assert float(errors.rotation.max()) < 1.0  # degrees
+
+
+def test_images_of_different_sizes_are_refused_with_the_sizes_named(shared_data):
+    from torchsfm.errors import InputError
+    from torchsfm.images import read_image
+
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    images = [read_image(path) for path in sequence.images[:3]]
+    images[1] = images[1][:, ::2, ::2]
+    with pytest.raises(InputError, match=r"one size.*\(3, 256, 384\).*\(3, 512, 768\)"):
+        torchsfm.reconstruct(images)

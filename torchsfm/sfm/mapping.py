@@ -145,7 +145,7 @@ def pairs_through_tracks(state, config: Config, allowed: Tensor, exclude: dict) 
     ``WIDER_PAIR_CANDIDATES`` of widest median disparity, verified like matched pairs. Under
     forward motion or a slow camera, neighbouring frames have too little parallax to start a model;
     frames further apart along the same tracks have more."""
-    tracks, V = state.tracks, len(state.images)
+    tracks, V = state.tracks, len(state.corners)
     counts = tracks.covisibility(V)
     disparity = rms_disparity(tracks, tracks.gather(state.raw), V, counts)
     usable = (counts >= config.reconstruction.min_pair_inliers) & allowed[:, None] & allowed[None, :]
@@ -244,7 +244,7 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     verified pairs among them, and so on. The model with most views is returned; the others are
     its ``other_models``, largest first, and its ``unregistered`` names, for every view it lacks,
     the separate model it belongs to or why it belongs to none."""
-    V = len(state.images)
+    V = len(state.corners)
     grown: list[tuple[MapperState, dict[int, str]]] = []
     remaining = torch.ones(V, dtype=torch.bool)
     while int(remaining.sum()) >= 2:
@@ -260,7 +260,7 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     reasons: dict[int, str] = {}
     for _, unregistered in reversed(grown):  # the largest model's reasons last: they stand
         reasons.update(unregistered)
-    built = [build_reconstruction(model, state.images, state.names, {}, {}) for model, _ in grown]
+    built = [build_reconstruction(model, state.images or None, state.names, {}, {}) for model, _ in grown]
     primary = built[0]
     for k, other in enumerate(built[1:], start=1):
         for view in other.view_indices:
@@ -275,7 +275,7 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     view that sees most reconstructed tracks (a view that fails is retried after the next
     registration), bundle adjustment, retriangulation, outlier removal and, when K was estimated,
     its refinement. Returns the model and, for every allowed view left out, the reason."""
-    tracks, V = state.tracks, len(state.images)
+    tracks, V = state.tracks, len(state.corners)
     timings = state.timings
 
     def timed(name: str, function):
@@ -353,13 +353,15 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     return model, unregistered
 
 
-def build_reconstruction(model: MapperState, images: list[Tensor], names: list[str], unregistered: dict[int, str],
+def build_reconstruction(model: MapperState, images: list[Tensor] | None, names: list[str], unregistered: dict[int, str],
             timings: dict[str, float]) -> Reconstruction:
+    """The model's registered views and its points seen in ``min_track_views`` inlier views,
+    coloured from ``images`` (None: tracks without images, every point grey)."""
     errors = model.observation_errors()
     tracks = model.tracks
     keep = errors < model.config.reconstruction.max_reprojection_error
     views = torch.nonzero(model.registered).flatten()
-    camera_of = torch.full((len(images),), -1, dtype=torch.long)
+    camera_of = torch.full((len(names),), -1, dtype=torch.long)
     camera_of[views] = torch.arange(views.numel())
     count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, keep.long())
     point_tracks = torch.nonzero(model.has_point & (count >= model.config.reconstruction.min_track_views)).flatten()
@@ -370,12 +372,12 @@ def build_reconstruction(model: MapperState, images: list[Tensor], names: list[s
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
     pixel = model.raw_pixels[first_observation].round().long()
     colour_view = tracks.view[first_observation]
-    colours = torch.zeros(point_tracks.numel(), 3, dtype=torch.uint8)
-    for view in torch.unique(colour_view).tolist():  # one gather per view: no stack of every image
+    colours = torch.full((point_tracks.numel(), 3), 128, dtype=torch.uint8)
+    for view in torch.unique(colour_view).tolist() if images else []:  # one gather per view: no stack of every image
         mine = colour_view == view
         colour = images[view].expand(3, -1, -1)[:, pixel[mine, 1], pixel[mine, 0]].T
         colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
-    H, W = images[0].shape[-2:]
+    H, W = images[0].shape[-2:] if images else (int(model.pixels[:, 1].max()) + 1, int(model.pixels[:, 0].max()) + 1)
     return Reconstruction(
         cameras=Camera(model.K[views], model.R[views], model.t[views]),
         image_names=[names[v] for v in views.tolist()],
@@ -386,6 +388,7 @@ def build_reconstruction(model: MapperState, images: list[Tensor], names: list[s
         observation_views=camera_of[tracks.view[keep]],
         keypoints=model.pixels[keep],
         view_indices=views.tolist(),
+        point_tracks=point_tracks,
         unregistered=unregistered,
         timings=timings,
     )

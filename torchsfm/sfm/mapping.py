@@ -142,7 +142,7 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
 def pairs_through_tracks(state, config: Config, allowed: Tensor, exclude: dict) -> dict[tuple[int, int], PairMatches]:
     """Verified matches of view pairs that were not matched directly but share at least
     ``min_pair_inliers`` tracks (chained through the views between them): the
-    ``WIDER_PAIR_CANDIDATES`` of widest median disparity, verified like matched pairs. Under
+    ``WIDER_PAIR_CANDIDATES`` of widest RMS disparity, verified like matched pairs. Under
     forward motion or a slow camera, neighbouring frames have too little parallax to start a model;
     frames further apart along the same tracks have more."""
     tracks, V = state.tracks, len(state.corners)

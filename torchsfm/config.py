@@ -317,7 +317,7 @@ class PairsConfig:
     ncc_threshold: float = 0.8
     homography_threshold: float = 8.0
     guided: bool = True
-    warp_patches: bool = False
+    warp_patches: bool = True
 
     def __post_init__(self) -> None:
         _require(self.mode in ("auto", "sequential", "exhaustive", "similarity"), "mode", self.mode,

@@ -189,7 +189,7 @@ class _SchurLinearization:
         by_camera = torch.split(Jc[problem.camera_order].reshape(-1, dc), problem.camera_rows)
         self.U = torch.stack([rows.T @ rows for rows in by_camera])
         self.V = torch.zeros(P, 3, 3, dtype=r.dtype, device=r.device)
-        for observations, _ in problem.track_groups:
+        for observations in problem.track_groups:
             rows = Jp[observations].reshape(observations.shape[0], -1, 3)  # (P_n, 2 n, 3)
             self.V[bundle.point_index[observations[:, 0]]] = rows.transpose(1, 2) @ rows
         self.W = Jc.transpose(1, 2) @ Jp  # (O, dc, 3)
@@ -233,10 +233,10 @@ class _SchurLinearization:
         """
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        block_numbers = sum(index.numel() for _, index in problem.track_groups) * dc * dc
+        block_numbers = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups) * dc * dc
         if block_numbers * 100 <= (C * dc) ** 2 * 3 * P:
             blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype, device=U.device)
-            for observations, block_index in problem.track_groups:  # (P_n, n) observation ids, (P_n n n,) S blocks
+            for observations, block_index in zip(problem.track_groups, problem.block_indices()):  # (P_n, n) ids, (P_n n n,) S blocks
                 P_n, n = observations.shape
                 left = Y[observations].reshape(P_n, n * dc, 3)
                 right = self.W[observations].reshape(P_n, n * dc, 3)
@@ -288,18 +288,15 @@ class _SchurLinearization:
         return x, torch.isfinite(x).all()
 
 
-def track_groups(camera_index: Tensor, point_index: Tensor, num_cameras: int, num_points: int) -> list[tuple[Tensor, Tensor]]:
-    """Points grouped by track length n: per group, the (P_n, n) observation ids of its points
-    and the (P_n n n,) index of the reduced-camera-system block each observation pair feeds."""
+def track_groups(point_index: Tensor, num_points: int) -> list[Tensor]:
+    """Points grouped by track length n: per group, the (P_n, n) observation ids of its points."""
     order = torch.argsort(point_index, stable=True)
     counts = torch.bincount(point_index, minlength=num_points)
     starts = torch.cumsum(counts, 0) - counts
     groups = []
     for n in torch.unique(counts[counts > 0]).tolist():
         points = torch.nonzero(counts == n).flatten()
-        observations = order[starts[points][:, None] + torch.arange(n, device=order.device)[None]]  # (P_n, n)
-        cameras = camera_index[observations]
-        groups.append((observations, (cameras[:, :, None] * num_cameras + cameras[:, None, :]).flatten()))
+        groups.append(order[starts[points][:, None] + torch.arange(n, device=order.device)[None]])  # (P_n, n)
     return groups
 
 
@@ -315,10 +312,21 @@ class _BundleLM:
         self.dc = CAMERA_DOF[bundle.camera_model]
         self.state_size = 12 if bundle.camera_model == "pinhole" else 15
         self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
-        self.track_groups = track_groups(bundle.camera_index, bundle.point_index, bundle.num_cameras, bundle.num_points)
+        self.track_groups = track_groups(bundle.point_index, bundle.num_points)
         self._buffers: tuple[Tensor, Tensor] | None = None
+        self._block_indices: list[Tensor] | None = None
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
         self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
+
+    def block_indices(self) -> list[Tensor]:
+        """Per track-length group, the (P_n n n,) index of the reduced-camera-system block each
+        observation pair feeds; built on first use only (the dense solver's short-track path:
+        Σ n² per point would be gigabytes for a long video's tracks)."""
+        if self._block_indices is None:
+            C = self.bundle.num_cameras
+            cameras = [self.bundle.camera_index[observations] for observations in self.track_groups]
+            self._block_indices = [(c[:, :, None] * C + c[:, None, :]).flatten() for c in cameras]
+        return self._block_indices
 
     def dense_buffers(self) -> tuple[Tensor, Tensor]:
         """Two zeroed (P, 3, C, dc) buffers for the dense reduced-camera-system product, allocated once

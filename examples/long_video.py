@@ -9,6 +9,7 @@ under ``/usr/bin/time -v`` for the peak resident memory (issue #12's bound for 5
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 from pathlib import Path
 
@@ -33,9 +34,13 @@ def main() -> None:
     order = [cycle[k % len(cycle)] for k in range(args.frames)]
     start = time.perf_counter()
 
+    peak = [0.0]
+
     def progress(message: str) -> None:
-        if not message.startswith(("registering", "matching views")):
-            print(f"{time.perf_counter() - start:8.1f} s  {message}", flush=True)
+        rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # GiB (Linux reports KiB)
+        if rss > peak[0] + 0.05 or not message.startswith(("registering", "matching views")):
+            print(f"{time.perf_counter() - start:8.1f} s  peak {rss:.2f} GiB  {message}", flush=True)
+        peak[0] = max(peak[0], rss)
 
     model = torchsfm.reconstruct([sequence.images[i] for i in order], sequence.K[0], config=with_overrides(torchsfm.Config(), args.set),
                                  generator=torch.Generator().manual_seed(0), progress=progress)

@@ -44,11 +44,19 @@ def gaussian_sigma(window: int) -> float:
     return 0.3 * ((window - 1) * 0.5 - 1) + 0.8
 
 
+RESPONSE_CHUNK_PIXELS = 2**20  # pixels per filtering call: Kornia's intermediates take ~150 bytes a pixel
+
+
 def harris_response(image: Tensor, k: float = 0.04, window: int = 3) -> Tensor:
     """R = det M - k trace² M with M the N×N-Gaussian-smoothed gradient products (eq. 3.2.2-3.2.3).
 
-    image (B, 1, H, W) float -> (B, 1, H, W).
+    image (B, 1, H, W) float -> (B, 1, H, W); filtered a few images at a time (at most
+    ``RESPONSE_CHUNK_PIXELS`` pixels, at least one image), so a long video's batch needs memory for
+    its response only, not for the filters' intermediate maps of every image at once.
     """
+    chunk = max(1, RESPONSE_CHUNK_PIXELS // (image.shape[-2] * image.shape[-1]))
+    if image.shape[0] > chunk:
+        return torch.cat([harris_response(image[first:first + chunk], k, window) for first in range(0, image.shape[0], chunk)])
     gradients = spatial_gradient(image, mode="sobel")  # (B, 1, 2, H, W)
     dx, dy = gradients[:, :, 0], gradients[:, :, 1]
     sigma = gaussian_sigma(window)

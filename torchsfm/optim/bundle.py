@@ -10,7 +10,11 @@ with a block-Jacobi preconditioner when large) and back-substitutes δp. The ite
 Camera models:
 
 * ``pinhole`` — torchsfm's calibrated camera: pixels = K (R X + t) dehomogenized, K fixed;
-  6 parameters per camera (a rotation increment R ← exp([ω]x) R, and t).
+  6 parameters per camera (a rotation increment R ← exp([ω]x) R, and t). With
+  ``shared_intrinsics`` one K common to every camera is adjusted too — the named ones of
+  ``f`` (fx and fy together: square pixels), ``fx``, ``fy``, ``cx``, ``cy``: m ≤ 4 global
+  parameters, a border on the reduced camera system (the camera solve gets m more right-hand
+  sides and an m×m Schur complement gives the intrinsics' step).
 * ``bal`` — Bundle Adjustment in the Large: P = R X + t, p = -P_xy / P_z,
   x = f (1 + k1 |p|² + k2 |p|⁴) p; 9 parameters per camera (ω, t, f, k1, k2).
 
@@ -35,6 +39,8 @@ from torchsfm.optim.lm import minimize
 from torchsfm.validation import check_finite, check_shapes
 
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
+INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0),
+                        "cx": (0.0, 0.0, 1.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy)
 
 
 @dataclass
@@ -44,11 +50,15 @@ class BundleProblem:
     Fields:
         camera_model: ``pinhole`` or ``bal``.
         rotations: (C, 3, 3) camera from world; translations: (C, 3).
-        intrinsics: ``pinhole``: K (C, 3, 3), held fixed; ``bal``: (C, 3) = (f, k1, k2), adjusted.
+        intrinsics: ``pinhole``: K (C, 3, 3), held fixed unless ``shared_intrinsics``; ``bal``:
+            (C, 3) = (f, k1, k2), adjusted.
         points: (P, 3) world points.
         camera_index, point_index: (O,) int64 of each observation.
         observations: (O, 2) measured image coordinates.
         fixed_cameras: (C,) bool, cameras held fixed (gauge); none by default.
+        shared_intrinsics: ``pinhole`` only: every camera has the same K (zero skew), and these
+            of its parameters are adjusted with the cameras and points (names of
+            ``INTRINSIC_PARAMETERS``; ``f`` keeps fx / fy as they are).
     """
 
     camera_model: str
@@ -60,6 +70,7 @@ class BundleProblem:
     point_index: Tensor
     observations: Tensor
     fixed_cameras: Tensor | None = None
+    shared_intrinsics: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.camera_model not in CAMERA_DOF:
@@ -78,6 +89,12 @@ class BundleProblem:
             raise InputError(f"point_index must lie in [0, {P})")
         if self.fixed_cameras is None:
             self.fixed_cameras = torch.zeros(C, dtype=torch.bool, device=self.points.device)
+        names = self.shared_intrinsics
+        if any(name not in INTRINSIC_PARAMETERS for name in names) or len(set(names)) < len(names) or ("f" in names and ({"fx", "fy"} & set(names))):
+            raise InputError(f"shared_intrinsics must name distinct ones of {', '.join(INTRINSIC_PARAMETERS)} (f or fx / fy), got {names}")
+        if names and (self.camera_model != "pinhole" or not bool((self.intrinsics == self.intrinsics[:1]).all())
+                      or float(self.intrinsics[0, 0, 1]) != 0):
+            raise InputError("shared_intrinsics needs the pinhole model and one K without skew for every camera")
 
     @property
     def num_cameras(self) -> int:
@@ -100,7 +117,7 @@ class BundleProblem:
         observed = keep[self.point_index]
         return BundleProblem(self.camera_model, self.rotations, self.translations, self.intrinsics, self.points[keep],
                              self.camera_index[observed], new_index[self.point_index[observed]],
-                             self.observations[observed], self.fixed_cameras)
+                             self.observations[observed], self.fixed_cameras, self.shared_intrinsics)
 
     def residuals(self) -> Tensor:
         """Predicted minus observed coordinates: (O, 2)."""
@@ -177,7 +194,8 @@ def _loss(squared: Tensor, kind: str, scale: float) -> tuple[Tensor, Tensor]:
 class _SchurLinearization:
     """The arrow-shaped normal equations at one point of a bundle problem (batch of one)."""
 
-    def __init__(self, problem: "_BundleLM", d_camera: Tensor, d_point: Tensor, residuals: Tensor, weights: Tensor) -> None:
+    def __init__(self, problem: "_BundleLM", d_camera: Tensor, d_point: Tensor, residuals: Tensor, weights: Tensor,
+                 d_intrinsics: Tensor | None = None) -> None:
         self.problem = problem
         bundle = problem.bundle
         root = weights.sqrt()[:, None, None]
@@ -197,32 +215,70 @@ class _SchurLinearization:
         g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
         self.gradient = torch.cat([g_camera.flatten(), g_point.flatten()])[None]
         self.diagonal = torch.cat([torch.diagonal(self.U, dim1=1, dim2=2).flatten(), torch.diagonal(self.V, dim1=1, dim2=2).flatten()])[None]
+        self.border = None
+        if d_intrinsics is not None:  # the shared intrinsics' blocks: with the cameras, the points, themselves
+            Jk = d_intrinsics * root  # (O, 2, m)
+            m = Jk.shape[-1]
+            E = torch.zeros(C, dc, m, dtype=r.dtype, device=r.device).index_add_(0, bundle.camera_index, Jc.transpose(1, 2) @ Jk)
+            Wk = torch.zeros(P, m, 3, dtype=r.dtype, device=r.device).index_add_(0, bundle.point_index, Jk.transpose(1, 2) @ Jp)
+            G = (Jk.transpose(1, 2) @ Jk).sum(0)
+            g_k = -(Jk.transpose(1, 2) @ r[..., None])[..., 0].sum(0)
+            self.border = (E, Wk, G)
+            self.gradient = torch.cat([self.gradient, g_k[None]], dim=1)
+            self.diagonal = torch.cat([self.diagonal, torch.diagonal(G)[None]], dim=1)
 
     def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
         damping = damping[0]
         U = self.U + torch.diag_embed(damping[: C * dc].reshape(C, dc))
-        V = self.V + torch.diag_embed(damping[C * dc:].reshape(P, 3))
+        V = self.V + torch.diag_embed(damping[C * dc:C * dc + 3 * P].reshape(P, 3))
         L, info = torch.linalg.cholesky_ex(V)
         if bool((info != 0).any()):
             return torch.zeros_like(self.gradient), torch.zeros(1, dtype=torch.bool)
         V_inverse = torch.cholesky_inverse(L)  # (P, 3, 3): every point block at once
         g_camera = self.gradient[0, : C * dc].reshape(C, dc)
-        g_point = self.gradient[0, C * dc:].reshape(P, 3)
+        g_point = self.gradient[0, C * dc:C * dc + 3 * P].reshape(P, 3)
         c, p = bundle.camera_index, bundle.point_index
         Y = self.W @ V_inverse[p]  # (O, dc, 3) = W V*⁻¹
         rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, (Y @ g_point[p][..., None])[..., 0])
+        if self.border is not None:  # one more right-hand side per intrinsic: S_ck = E - Σ W V*⁻¹ Wkᵀ
+            E, Wk, _ = self.border
+            rhs = torch.cat([rhs[..., None], E - torch.zeros_like(E).index_add_(0, c, Y @ Wk[p].transpose(1, 2))], dim=-1)
         if problem.config.linear_solver == "dense" or (problem.config.linear_solver == "auto" and C * dc <= problem.config.dense_limit):
-            delta_camera, ok = self._dense(U, V_inverse, Y, rhs)
+            solution, ok = self._dense(U, V_inverse, Y, rhs)
         else:
-            delta_camera, ok = self._conjugate_gradients(U, V_inverse, Y, rhs)
-        back = g_point - torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
+            solution, ok = self._conjugate_gradients(U, V_inverse, Y, rhs)
+        if self.border is None:
+            delta_camera, delta_intrinsics, back = solution, None, g_point
+        else:
+            delta_intrinsics, ok = self._intrinsics_step(rhs, solution, V_inverse, g_point, damping[C * dc + 3 * P:], ok)
+            delta_camera = solution[..., 0] - solution[..., 1:] @ delta_intrinsics
+            back = g_point - (self.border[1].transpose(1, 2) @ delta_intrinsics)
+        back = back - torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
         delta_point = (V_inverse @ back[..., None])[..., 0]
-        return torch.cat([delta_camera.flatten(), delta_point.flatten()])[None], ok[None]
+        parts = [delta_camera.flatten(), delta_point.flatten()] + ([] if delta_intrinsics is None else [delta_intrinsics])
+        return torch.cat(parts)[None], ok[None]
+
+    def _intrinsics_step(self, rhs: Tensor, solution: Tensor, V_inverse: Tensor, g_point: Tensor, damping: Tensor,
+                         ok: Tensor) -> tuple[Tensor, Tensor]:
+        """The intrinsics' step from the m×m Schur complement of the camera block: rhs (C, dc, 1 + m)
+        holds the cameras' right-hand side and S_ck, solution (C, dc, 1 + m) S_cc⁻¹ of them."""
+        _, Wk, G = self.border
+        m = G.shape[0]
+        WkV = Wk @ V_inverse  # (P, m, 3)
+        S_kk = G + torch.diag(damping) - (WkV @ Wk.transpose(1, 2)).sum(0)
+        g_k = self.gradient[0, -m:] - (WkV @ g_point[..., None])[..., 0].sum(0)
+        S_ck = rhs[..., 1:].reshape(-1, m)
+        reduced = S_kk - S_ck.T @ solution[..., 1:].reshape(-1, m)
+        L, info = torch.linalg.cholesky_ex(reduced)
+        if int(info) != 0:
+            return torch.zeros_like(g_k), torch.tensor(False, device=g_k.device)
+        step = torch.cholesky_solve((g_k - S_ck.T @ solution[..., 0].flatten())[:, None], L)[:, 0]
+        return step, ok
 
     def _dense(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
-        """S = U* - Σ_p W_p V*_p⁻¹ W_pᵀ, then Cholesky.
+        """S = U* - Σ_p W_p V*_p⁻¹ W_pᵀ, then Cholesky; rhs (C, dc) or (C, dc, m) columns.
 
         Short tracks: points are processed in groups of equal track length n, one batched
         product (n dc × 3)(3 × n dc) per group giving every camera-pair block of every point,
@@ -253,10 +309,15 @@ class _SchurLinearization:
         L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
         if int(info) != 0:
             return torch.zeros_like(rhs), torch.tensor(False)
-        return torch.cholesky_solve(rhs.reshape(-1, 1), L).reshape(C, dc), torch.tensor(True, device=U.device)
+        columns = rhs.reshape(C * dc, -1)  # (C dc) x 1, or 5 with the intrinsics' border
+        return torch.cholesky_solve(columns, L).reshape(rhs.shape), torch.tensor(True, device=U.device)
 
     def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
-        """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks)."""
+        """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks);
+        rhs (C, dc), or (C, dc, m): one solve per column."""
+        if rhs.dim() == 3:
+            columns = [self._conjugate_gradients(U, V_inverse, Y, rhs[..., k]) for k in range(rhs.shape[-1])]
+            return torch.stack([x for x, _ in columns], dim=-1), torch.stack([ok for _, ok in columns]).all()
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
         c, p = bundle.camera_index, bundle.point_index
@@ -304,7 +365,8 @@ class _BundleLM:
     """A :class:`~torchsfm.optim.lm.LMProblem` view of a bundle problem (batch of one).
 
     Parameters are flattened to (1, S): per camera R (9), t (3) and for BAL (f, k1, k2), then
-    the points. Steps are (1, C dc + 3 P).
+    the points, then with ``shared_intrinsics`` (fx, fy, cx, cy). Steps are (1, C dc + 3 P [+ m]),
+    the intrinsics' m along ``intrinsics_basis`` (4, m).
     """
 
     def __init__(self, bundle: BundleProblem, config: BundleAdjustmentConfig) -> None:
@@ -317,6 +379,8 @@ class _BundleLM:
         self._block_indices: list[Tensor] | None = None
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
         self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
+        self.intrinsics_basis = torch.tensor([INTRINSIC_PARAMETERS[name] for name in bundle.shared_intrinsics],
+                                             dtype=bundle.points.dtype, device=bundle.points.device).reshape(-1, 4).T
 
     def block_indices(self) -> list[Tensor]:
         """Per track-length group, the (P_n n n,) index of the reduced-camera-system block each
@@ -341,13 +405,19 @@ class _BundleLM:
         parts = [bundle.rotations.flatten(1), bundle.translations]
         if bundle.camera_model == "bal":
             parts.append(bundle.intrinsics)
-        return torch.cat([torch.cat(parts, dim=1).flatten(), bundle.points.flatten()])[None]
+        shared = [bundle.intrinsics[0, [0, 1, 0, 1], [0, 1, 2, 2]]] if bundle.shared_intrinsics else []
+        return torch.cat([torch.cat(parts, dim=1).flatten(), bundle.points.flatten()] + shared)[None]
 
     def unpack(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        C = self.bundle.num_cameras
+        C, P = self.bundle.num_cameras, self.bundle.num_points
         cameras = params[0, : C * self.state_size].reshape(C, self.state_size)
-        points = params[0, C * self.state_size:].reshape(-1, 3)
+        points = params[0, C * self.state_size:C * self.state_size + 3 * P].reshape(-1, 3)
         intrinsics = cameras[:, 12:15] if self.bundle.camera_model == "bal" else self.bundle.intrinsics
+        if self.bundle.shared_intrinsics:  # (fx, fy, cx, cy) after the points
+            fx, fy, cx, cy = params[0, -4:].unbind()
+            zero, one = torch.zeros_like(fx), torch.ones_like(fx)
+            K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one]).reshape(3, 3)
+            intrinsics = K.expand(C, 3, 3)
         return cameras[:, :9].reshape(C, 3, 3), cameras[:, 9:12], intrinsics, points
 
     def _weighted(self, params: Tensor, jacobians: bool):
@@ -355,25 +425,35 @@ class _BundleLM:
         prediction, d_camera, d_point = _project(self.bundle, R, t, intrinsics, points, jacobians)
         residuals = prediction - self.bundle.observations
         rho, weights = _loss(residuals.square().sum(-1), self.config.loss, self.config.loss_scale)
-        return residuals, rho, weights, d_camera, d_point
+        d_intrinsics = None
+        if jacobians and self.bundle.shared_intrinsics:  # d(u, v) / d(fx, fy, cx, cy) = [[xn, 0, 1, 0], [0, yn, 0, 1]]
+            K = intrinsics[0]
+            normalized = (prediction - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]])
+            d_intrinsics = torch.zeros(prediction.shape[0], 2, 4, dtype=prediction.dtype, device=prediction.device)
+            d_intrinsics[:, 0, 0], d_intrinsics[:, 1, 1] = normalized[:, 0], normalized[:, 1]
+            d_intrinsics[:, 0, 2] = d_intrinsics[:, 1, 3] = 1
+            d_intrinsics = d_intrinsics @ self.intrinsics_basis  # (O, 2, m)
+        return residuals, rho, weights, d_camera, d_point, d_intrinsics
 
     def cost(self, params: Tensor) -> Tensor:
-        _, rho, _, _, _ = self._weighted(params, False)
+        rho = self._weighted(params, False)[1]
         return 0.5 * rho.sum()[None]
 
     def linearize(self, params: Tensor) -> _SchurLinearization:
-        residuals, _, weights, d_camera, d_point = self._weighted(params, True)
-        return _SchurLinearization(self, d_camera, d_point, residuals, weights)
+        residuals, _, weights, d_camera, d_point, d_intrinsics = self._weighted(params, True)
+        return _SchurLinearization(self, d_camera, d_point, residuals, weights, d_intrinsics)
 
     def retract(self, params: Tensor, delta: Tensor) -> Tensor:
-        C, dc = self.bundle.num_cameras, self.dc
+        C, P, dc = self.bundle.num_cameras, self.bundle.num_points, self.dc
         R, t, intrinsics, points = self.unpack(params)
         step_camera = delta[0, : C * dc].reshape(C, dc) * self.free
         R = axis_angle_to_rotation(step_camera[:, :3]) @ R
         t = t + step_camera[:, 3:6]
         parts = [R.flatten(1), t] + ([intrinsics + step_camera[:, 6:9]] if self.bundle.camera_model == "bal" else [])
-        points = points + delta[0, C * dc:].reshape(-1, 3)
-        return torch.cat([torch.cat(parts, dim=1).flatten(), points.flatten()])[None]
+        points = points + delta[0, C * dc:C * dc + 3 * P].reshape(-1, 3)
+        m = self.intrinsics_basis.shape[1]
+        shared = [params[0, -4:] + self.intrinsics_basis @ delta[0, -m:]] if self.bundle.shared_intrinsics else []
+        return torch.cat([torch.cat(parts, dim=1).flatten(), points.flatten()] + shared)[None]
 
 
 def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | None = None) -> BundleResult:
@@ -389,7 +469,7 @@ def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | No
     R, t, intrinsics, points = lm_problem.unpack(result.params)
     adjusted = copy.copy(problem)
     adjusted.rotations, adjusted.translations, adjusted.points = R.clone(), t.clone(), points.clone()
-    adjusted.intrinsics = intrinsics.clone()
+    adjusted.intrinsics = intrinsics.clone()  # a shared K: one copy per camera
     return BundleResult(problem=adjusted, initial_cost=problem.cost(), final_cost=adjusted.cost(),
                         num_iterations=int(result.num_iterations[0]), converged=bool(result.converged[0]),
                         status=("converged" if bool(result.converged[0]) else "stalled" if bool(result.stalled[0])

@@ -13,7 +13,6 @@ from torch import Tensor
 from torchsfm.camera import Camera, project, projection_matrix
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
-from torchsfm.geometry.self_calibration import golden_section
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.reconstruction import Reconstruction
@@ -22,9 +21,8 @@ from torchsfm.estimators.absolute_pose import estimate_absolute_pose
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 
-FOCAL_REFINEMENT_RANGE = 1.1  # the bundle-adjusted profile searches f / 1.1 .. f × 1.1
-PRINCIPAL_POINT_RANGE = 0.02  # ... and the principal point ± 2% of the image's larger side
-INTRINSICS_REFINEMENT_STEPS = 10
+MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
+MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 
 
@@ -168,11 +166,13 @@ def rms_disparity(tracks: Tracks, pixels: Tensor, num_views: int, counts: Tensor
 
 
 def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None,
-           free_views: Tensor | None = None) -> float:
+           free_views: Tensor | None = None, intrinsics: tuple[str, ...] = ()) -> float:
     """Adjust the registered cameras and the points with their inlier observations (or the
     ``usable`` (T,) ones), in place, with ``reconstruction.bundle_loss``; returns the final cost
     per observation (px²). ``free_views`` (V,) bool: a local adjustment — only the points those
-    views see, and only those cameras move (the others that see the points hold them fixed)."""
+    views see, and only those cameras move (the others that see the points hold them fixed).
+    ``intrinsics``: these parameters of the K shared by every view are adjusted too (names of
+    :data:`~torchsfm.optim.bundle.INTRINSIC_PARAMETERS`)."""
     if usable is None:
         usable = model.observation_errors() < config.reconstruction.max_reprojection_error
     selected, fixed = model.has_point, torch.arange(len(model.corners)) == fixed_view
@@ -193,48 +193,38 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
         camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
         points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
         point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
-        fixed_cameras=fixed[views],
+        fixed_cameras=fixed[views], shared_intrinsics=intrinsics,
     )
     settings = dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
     result = bundle_adjust(problem, config=settings)
     adjusted = result.problem
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
+    if intrinsics:
+        model.K = adjusted.intrinsics[:1].expand_as(model.K).clone()
     return result.final_cost / max(int(usable.sum()), 1)
 
 
-def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> None:
-    """The shared focal length and principal point minimizing the bundle-adjusted reprojection
-    cost: golden-section profiles over log f (± ``FOCAL_REFINEMENT_RANGE``), then cx and cy
-    (± ``PRINCIPAL_POINT_RANGE`` of the image size), then f again, every evaluation a bundle
-    adjustment from the current model over one fixed set of observations; the model ends
-    adjusted at the best values."""
-    start = (model.R.clone(), model.t.clone(), model.points.clone())
-    usable = model.observation_errors() < config.reconstruction.max_reprojection_error  # one set for every K
+def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
+    """The K shared by every view — fx, fy, cx, cy — adjusted jointly with the cameras and points
+    (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``), in place. A result
+    that moves the focal length by more than ``MAX_FOCAL_CHANGE`` or the principal point by more
+    than ``MAX_PRINCIPAL_POINT_SHIFT`` of the image is not trusted (a critical motion, e.g. a
+    camera turning about one axis only, leaves K unconstrained): the model is then restored and
+    adjusted with its focal length as it was. Returns what was done, for the progress report."""
+    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone())
     size = 2 * float(model.K[0, :2, 2].max()) + 1
-
-    def cost(K: Tensor) -> float:
-        model.R, model.t, model.points = (tensor.clone() for tensor in start)
-        model.K = K.expand_as(model.K).clone()
-        return bundle(model, config, fixed_view, usable)
-
-    def with_value(K: Tensor, which: str, value: float) -> Tensor:
-        K = K.clone()
-        if which == "f":
-            K[0, 0] = K[1, 1] = math.exp(value)
-        else:
-            K[0 if which == "cx" else 1, 2] = value
-        return K
-
-    K = model.K[0].clone()
-    for which in ("f", "cx", "cy", "f"):
-        if which == "f":
-            centre, half = math.log(float(K[0, 0])), math.log(FOCAL_REFINEMENT_RANGE)
-        else:
-            centre, half = float(K[0 if which == "cx" else 1, 2]), PRINCIPAL_POINT_RANGE * size
-        best = golden_section(lambda value: cost(with_value(K, which, value)), centre - half, centre + half,
-                              INTRINSICS_REFINEMENT_STEPS)
-        K = with_value(K, which, best)
-    cost(K)
+    bundle(model, config, fixed_view, intrinsics=tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name))
+    before, after = start[0][0], model.K[0]
+    focal_change = float(torch.maximum(after[0, 0] / before[0, 0], after[1, 1] / before[1, 1]).maximum(
+        torch.maximum(before[0, 0] / after[0, 0], before[1, 1] / after[1, 1])))
+    shift = float((after[:2, 2] - before[:2, 2]).norm())
+    if math.isfinite(focal_change) and focal_change <= MAX_FOCAL_CHANGE and shift <= MAX_PRINCIPAL_POINT_SHIFT * size:
+        return f"intrinsics refined by bundle adjustment: fx {float(after[0, 0]):.1f}, fy {float(after[1, 1]):.1f}, " \
+               f"principal point ({float(after[0, 2]):.1f}, {float(after[1, 2]):.1f}) px"
+    model.K, model.R, model.t, model.points = start
+    bundle(model, config, fixed_view)
+    return (f"intrinsics refinement not trusted (focal length x{focal_change:.2f}, principal point moved {shift:.0f} px): "
+            f"focal length kept at {float(before[0, 0]):.1f} px")
 
 
 def map_incrementally(state, config: Config) -> Reconstruction:
@@ -348,8 +338,7 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     model.has_point &= inlier_count >= config.reconstruction.min_track_views
     timed("bundle adjustment", lambda: bundle(model, config, first))
     if state.estimate_focal:
-        timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first))
-        state.report(f"focal length refined by bundle adjustment: {float(model.K[0, 0, 0]):.1f} px")
+        state.report(timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first)))
     return model, unregistered
 
 

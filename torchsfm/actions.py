@@ -147,6 +147,10 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
                     for v, name in enumerate(model.image_names)],
         "other_models": [{"folder": f"other_models/{k}", "views": other.view_indices, "images": other.image_names,
                           "points": other.num_points} for k, other in enumerate(model.other_models, start=1)],
+        "objects": [{"label": body.label, "tracks": body.num_tracks, "reason": body.reason or None,
+                     **({"folder": f"objects/{body.label}", "views": body.model.view_indices, "points": body.model.num_points,
+                         "scale": "its own (unknown relative to the scene)"} if body.model is not None else {})}
+                    for body in model.objects],
         "config": config_to_dict(config),
     }
 
@@ -154,9 +158,12 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
 def reconstruction_files(model: Reconstruction, summary: dict) -> dict[str, bytes | str]:
     """The files of a multi-view model, by path under the output folder: ``summary.json``, the
     model's ``model.wrl``, ``points.ply`` and ``colmap/*.txt``, and the same for each of its
-    ``other_models`` under ``other_models/k/`` (k from 1)."""
+    ``other_models`` under ``other_models/k/`` (k from 1) and each moving body's model under
+    ``objects/label/`` (its points in the body's colour)."""
     files: dict[str, bytes | str] = {"summary.json": json.dumps(summary, indent=2) + "\n"}
-    for folder, part in [("", model)] + [(f"other_models/{k}/", other) for k, other in enumerate(model.other_models, start=1)]:
+    parts = ([("", model)] + [(f"other_models/{k}/", other) for k, other in enumerate(model.other_models, start=1)]
+             + [(f"objects/{body.label}/", body.model) for body in model.objects if body.model is not None])
+    for folder, part in parts:
         files.update({f"{folder}model.wrl": vrml_text(part), f"{folder}points.ply": ply_bytes(part.points3d, part.colors)})
         files.update({f"{folder}colmap/{name}": text for name, text in colmap_text(part).items()})
     return files

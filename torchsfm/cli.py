@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from torchsfm.errors import TorchSfmError
+from torchsfm.errors import InputError, TorchSfmError
 
 
 def _progress(quiet: bool):
@@ -29,6 +29,7 @@ def _config(args: argparse.Namespace):
 
     config = load_config(args.config) if args.config else Config()
     flags = (["moving_objects.enabled=true"] if args.moving_objects else []) + (
+        ["moving_objects.reconstruct_objects=true"] if args.moving_objects == "reconstruct" else []) + (
         ["pairs.mode=sequential"] if getattr(args, "sequential", False) else [])
     return with_overrides(config, args.set + flags)
 
@@ -66,6 +67,8 @@ def _two_view(args: argparse.Namespace) -> None:
     from torchsfm.actions import two_view
     from torchsfm.calibration.files import read_camera
 
+    if args.moving_objects == "reconstruct":
+        raise InputError("--moving-objects reconstruct needs the frames of a sequence: use 'torchsfm reconstruct'")
     config = _config(args)
     K, distortion = read_camera(args.K)
     summary = two_view(args.image1, args.image2, K, args.out, distortion=distortion, config=config, third=args.third,
@@ -90,6 +93,10 @@ def _reconstruct(args: argparse.Namespace) -> None:
     for view in summary["unregistered"]:
         print(f"view {view['index']} not registered: {view['reason']}")
     _print_moving_objects(summary)
+    for body in summary["objects"]:
+        print(f"moving body {body['label']} ({body['tracks']} tracks): " + (
+            f"{len(body['views'])} views, {body['points']} points in {args.out}/{body['folder']}/ (its own scale)"
+            if "folder" in body else body["reason"]))
     print(f"wrote {args.out}/model.wrl, points.ply, colmap/, summary.json")
 
 
@@ -124,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--config", type=Path, help="YAML config (defaults: configs/default.yaml)")
     calibrate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
     calibrate.add_argument("--quiet", action="store_true", help="no progress messages")
-    calibrate.set_defaults(run=_calibrate, moving_objects=False)
+    calibrate.set_defaults(run=_calibrate, moving_objects=None)
     return parser
 
 
@@ -159,8 +166,9 @@ def _job_options(parser: argparse.ArgumentParser, *, K_required: bool = True) ->
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one config value")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random choice")
-    parser.add_argument("--moving-objects", action="store_true",
-                        help="reject independently moving objects (IMOR + RANSAC over frame triplets)")
+    parser.add_argument("--moving-objects", nargs="?", const="reject", choices=("reject", "reconstruct"),
+                        help="reject independently moving objects (IMOR + RANSAC over frame triplets); 'reconstruct' "
+                        "(multi-view): segment the motions and reconstruct each moving body as its own model")
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 

@@ -353,7 +353,9 @@ class ReconstructionConfig:
     adjusted cameras and the model adjusted once more. The pipeline's adjustments use the robust
     ``bundle_loss`` (at ``bundle_adjustment.loss_scale`` px): real matches hold outliers that
     survive the epipolar and reprojection tests (``bundle_adjustment.loss`` stays the plain least
-    squares of :func:`torchsfm.bundle_adjust`).
+    squares of :func:`torchsfm.bundle_adjust`). Without K, a last adjustment also refines the
+    ``refined_intrinsics`` of the K all views share (comma-separated: ``f`` for one square-pixel
+    focal length or ``fx``, ``fy``, and ``cx``, ``cy``).
     """
 
     min_pair_inliers: int = 30
@@ -368,8 +370,13 @@ class ReconstructionConfig:
     local_bundle_window: int = 0
     retriangulations: int = 1
     bundle_loss: str = "cauchy"
+    refined_intrinsics: str = "f,cx,cy"
 
     def __post_init__(self) -> None:
+        names = [name for name in self.refined_intrinsics.split(",") if name]
+        _require(all(name in ("f", "fx", "fy", "cx", "cy") for name in names) and len(set(names)) == len(names)
+                 and not ("f" in names and {"fx", "fy"} & set(names)), "refined_intrinsics", self.refined_intrinsics,
+                 "distinct names of f (or fx, fy), cx, cy, comma-separated")
         _require(self.retriangulations >= 0, "retriangulations", self.retriangulations, "must be >= 0")
         _require(self.bundle_loss in ("none", "huber", "cauchy"), "bundle_loss", self.bundle_loss, "one of none, huber, cauchy")
         _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
@@ -418,7 +425,10 @@ class MovingObjectsConfig:
     ``track_refinements`` alternations; a track belongs to a group within the larger of the χ²
     bound at ``track_significance`` and ``track_tolerance`` px RMS; the static group is the one
     the votes reject least) or ``both``. ``enabled`` turns the rejection on in the two-view and
-    multi-view pipelines.
+    multi-view pipelines. With ``reconstruct_objects`` the multi-view pipeline segments the tracks
+    (``track_method`` ``segmentation`` whatever it is set to), reconstructs the static scene from
+    label 0 and each moving body with at least ``min_object_tracks`` tracks seen in at least
+    ``min_object_frames`` frames as its own model (:class:`~torchsfm.reconstruction.MovingObject`).
     """
 
     plane_model: str = "homography"
@@ -445,8 +455,13 @@ class MovingObjectsConfig:
     track_refinements: int = 3
     resection_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, max_trials=2000))
     enabled: bool = False
+    reconstruct_objects: bool = False
+    min_object_tracks: int = 20
+    min_object_frames: int = 3
 
     def __post_init__(self) -> None:
+        _require(self.min_object_tracks >= 8, "min_object_tracks", self.min_object_tracks, "must be >= 8")
+        _require(self.min_object_frames >= 2, "min_object_frames", self.min_object_frames, "must be >= 2")
         _require(self.plane_model in ("quadratic", "homography"), "plane_model", self.plane_model, "one of quadratic, homography")
         _require(0 < self.min_plane_share <= 1, "min_plane_share", self.min_plane_share, "must lie in (0, 1]")
         _require(self.seed_candidates >= 1, "seed_candidates", self.seed_candidates, "must be >= 1")

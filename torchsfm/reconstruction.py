@@ -41,6 +41,8 @@ class Reconstruction:
         other_models: multi-view models only: the separate models of views this model could not
             reach (the set split), largest first, each with its own ``view_indices`` (input views)
             and frame; empty when every reconstructed view is in this one.
+        objects: with ``moving_objects.reconstruct_objects``: every independently moving body
+            the segmentation found (:class:`MovingObject`), with its model or why it has none.
     """
 
     cameras: Camera
@@ -60,6 +62,7 @@ class Reconstruction:
     moving_rejections_per_view: dict[int, int] = field(default_factory=dict)
     point_tracks: Tensor | None = None
     other_models: list[Reconstruction] = field(default_factory=list)
+    objects: list[MovingObject] = field(default_factory=list)
 
     @property
     def num_views(self) -> int:
@@ -86,3 +89,43 @@ class Reconstruction:
         """RMS reprojection error over all observations (pixels)."""
         errors = self.observation_errors()
         return float(errors.square().mean().sqrt()) if errors.numel() else 0.0
+
+
+@dataclass
+class MovingObject:
+    """One independently moving rigid body of a multi-view reconstruction.
+
+    Fields:
+        label: its motion label (1..k) in the segmentation of the tracks.
+        num_tracks: the tracks the segmentation gave it.
+        model: the body in its own frame — its points, and per frame it is seen in the camera's
+            pose relative to the body (``view_indices``: input views) — or None.
+        reason: why there is no model (too few tracks or frames, no baseline), else "".
+
+    The body's scale is its own: unknown relative to the scene's (a body moving along the
+    camera's line of sight at a constant speed is as consistent with a nearer, static one).
+    :meth:`poses_in_scene` places it in the scene's frame for a chosen scale.
+    """
+
+    label: int
+    num_tracks: int
+    model: Reconstruction | None = None
+    reason: str = ""
+
+    def poses_in_scene(self, scene: Reconstruction, scale: float = 1.0) -> tuple[list[int], Tensor, Tensor]:
+        """The body's pose in the scene's frame in every input view both models registered:
+        (view indices, (n, 3, 3) world-from-body rotations, (n, 3) positions of the body's origin),
+        its translations multiplied by ``scale`` (the body's size in scene units per model unit).
+        The rotations do not depend on the scale."""
+        if self.model is None:
+            return [], torch.empty(0, 3, 3, dtype=torch.float64), torch.empty(0, 3, dtype=torch.float64)
+        in_scene = {v: k for k, v in enumerate(scene.view_indices)}
+        pairs = [(v, in_scene[v], k) for k, v in enumerate(self.model.view_indices) if v in in_scene]
+        views = [v for v, _, _ in pairs]
+        scene_camera = torch.tensor([s for _, s, _ in pairs], dtype=torch.long)
+        body_camera = torch.tensor([b for _, _, b in pairs], dtype=torch.long)
+        R_scene, t_scene = scene.cameras.R[scene_camera], scene.cameras.t[scene_camera]  # camera from world
+        R_body, t_body = self.model.cameras.R[body_camera], self.model.cameras.t[body_camera]  # camera from body
+        rotations = R_scene.transpose(1, 2) @ R_body
+        positions = (R_scene.transpose(1, 2) @ (scale * t_body - t_scene)[..., None])[..., 0]
+        return views, rotations, positions

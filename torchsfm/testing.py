@@ -246,6 +246,9 @@ class MovingObjectScene:
         tracks: (F, N, 2) observed pixels (noisy; random pixels at outlier rows).
         labels: (N,) int64: 0 static background, k >= 1 the k-th moving object, -1 outlier.
         image_size: (width, height).
+        object_rotations: (num_objects, F, 3, 3) each object's rotation since frame 0 (world
+            frame): its points at frame f are object_rotations[k - 1, f] (X - c) + c' for its
+            frame-0 points X, centre c, and centre c' at f.
     """
 
     K: Tensor
@@ -254,6 +257,7 @@ class MovingObjectScene:
     tracks: Tensor
     labels: Tensor
     image_size: tuple[int, int]
+    object_rotations: Tensor
 
 
 def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
@@ -299,14 +303,16 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     keep = torch.nonzero(ok).flatten()
     keep = keep[torch.randperm(keep.numel(), generator=g)[:background_points]]
     tracks, labels = [pixels[:, keep]], [torch.zeros(keep.numel(), dtype=torch.long)]
+    object_rotations = torch.eye(3, dtype=torch.float64).repeat(num_objects, num_frames, 1, 1)
     for k in range(1, num_objects + 1):
         centre = torch.stack([_uniform((), -3, 3, g), _uniform((), -2, 2, g), _uniform((), 6, 10, g)])
         body = centre + _uniform((3 * object_points, 3), -1, 1, g)
         frames, position = [body], centre
-        for _ in range(num_frames - 1):  # a new random step and turn every frame
+        for f in range(1, num_frames):  # a new random step and turn every frame
             direction = _uniform((3,), -1, 1, g)
             move = direction / direction.norm() * _uniform((), 0.3, 0.6, g)
             turn = axis_angle_to_rotation(_uniform((3,), -3, 3, g) * math.pi / 180)
+            object_rotations[k - 1, f] = turn @ object_rotations[k - 1, f - 1]
             frames.append((frames[-1] - position) @ turn.T + position + move)
             position = position + move
         pixels, ok = inside(torch.stack(frames))
@@ -321,7 +327,8 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     tracks = torch.cat([tracks, outliers], 1)
     labels = torch.cat([labels, torch.full((num_outliers,), -1, dtype=torch.long)])
     order = torch.randperm(labels.numel(), generator=g)
-    return MovingObjectScene(K=K, R=R, t=t, tracks=tracks[:, order], labels=labels[order], image_size=(W, H))
+    return MovingObjectScene(K=K, R=R, t=t, tracks=tracks[:, order], labels=labels[order], image_size=(W, H),
+                             object_rotations=object_rotations)
 
 
 def rejection_figures(background: Tensor, labels: Tensor) -> dict[str, float]:

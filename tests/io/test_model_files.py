@@ -2,14 +2,15 @@ import pytest
 import torch
 from torch.testing import assert_close
 
-from torchsfm.actions import reconstruction_files
+from torchsfm.actions import reconstruction_files, reconstruction_summary
 from torchsfm.camera import Camera
+from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.io.atomic import atomic_write_text
 from torchsfm.io.colmap import read_colmap_text, write_colmap_text
 from torchsfm.io.ply import write_ply
 from torchsfm.io.vrml import vrml_text, write_vrml
-from torchsfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.testing import synthetic_two_view
 
 
@@ -100,3 +101,14 @@ def test_a_split_set_writes_each_other_model_in_its_own_folder():
     for folder in ("", "other_models/1/", "other_models/2/"):
         assert {f"{folder}model.wrl", f"{folder}points.ply", f"{folder}colmap/images.txt"} <= files.keys()
     assert "other_models/3/model.wrl" not in files and files["summary.json"].startswith("{")
+
+
+def test_each_moving_body_with_a_model_gets_its_folder_and_a_summary_row():
+    model = _model()
+    model.objects = [MovingObject(label=1, num_tracks=80, model=_model()), MovingObject(label=3, num_tracks=12, reason="too few tracks")]
+    summary = reconstruction_summary(model, 1.0, Config())
+    assert summary["objects"][0]["folder"] == "objects/1" and summary["objects"][0]["reason"] is None
+    assert summary["objects"][1] == {"label": 3, "tracks": 12, "reason": "too few tracks"}
+    files = reconstruction_files(model, summary)
+    assert {"objects/1/model.wrl", "objects/1/points.ply", "objects/1/colmap/images.txt"} <= files.keys()
+    assert not any(name.startswith("objects/3/") for name in files)

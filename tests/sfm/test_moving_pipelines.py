@@ -70,6 +70,9 @@ def test_cli_moving_objects(tmp_path, capsys):
     assert main(["two-view", str(paths[0]), str(paths[1]), "--moving-objects", "--K", str(SAMPLE / "K.txt"),
                  "--out", str(missing), "--quiet"]) == 2
     assert "needs a third image" in capsys.readouterr().err and not missing.exists()
+    assert main(["two-view", str(paths[0]), str(paths[1]), "--third", str(paths[2]), "--moving-objects", "reconstruct",
+                 "--K", str(SAMPLE / "K.txt"), "--out", str(missing), "--quiet"]) == 2
+    assert "use 'torchsfm reconstruct'" in capsys.readouterr().err and not missing.exists()
 
 
 def test_multi_view_with_an_inserted_object(shared_data):
@@ -92,5 +95,11 @@ def test_multi_view_with_an_inserted_object(shared_data):
     assert (0, 1, 2) in model.moving_objects
     rejected = model.moving_rejections_per_view
     assert sorted(rejected) == [0, 1, 2] and all(count > 0 for count in rejected.values())
+    assert rotation <= 1.5 * clean_rotation + 0.01
+    assert centre <= 1.5 * clean_centre + 0.0005
+    # per-body mode: the segmentation's static pieces go back to the scene (a static point explains
+    # them in its cameras); the patch's tracks are two-view only (no body to reconstruct)
+    bodies, rotation, centre = run(patched, with_overrides(MOVING, ["moving_objects.reconstruct_objects=true"]))
+    assert _points_on_object(bodies, boxes) == 0 and bodies.num_points > model.num_points and bodies.objects == []
     assert rotation <= 1.5 * clean_rotation + 0.01
     assert centre <= 1.5 * clean_centre + 0.0005

@@ -7,6 +7,8 @@ the mapper of :mod:`torchsfm.sfm.mapping` on them. :func:`reconstruct_motions` s
 tracks into rigid motions (:func:`~torchsfm.moving.segmentation.segment_motions`) and
 reconstructs each: the static scene with the camera's poses, and every moving body in its own
 frame — the camera's poses relative to the body, and the body's shape (up to its own scale).
+:class:`ReconstructObjects` is the image pipeline's stage that does the same for the moving
+bodies the segmentation found in a :class:`~torchsfm.sfm.stages.ViewSet`.
 """
 
 from __future__ import annotations
@@ -16,16 +18,22 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from torchsfm.camera import check_intrinsics
+from torchsfm.camera import check_intrinsics, to_homogeneous
 from torchsfm.config import Config
+from torchsfm.geometry.triangulation import triangulate_multiview
 from torchsfm.errors import InputError, NotEnoughDataError, TorchSfmError
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.track_input import check_tracks
-from torchsfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
+from torchsfm.sfm.pipeline import ConfiguredStage
 from torchsfm.sfm.stages import Progress, ViewSet
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import verify_pairs
+
+
+BODY_COLOURS = torch.tensor([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180], [70, 240, 240]],
+                            dtype=torch.uint8)  # one colour per moving body's points, in turn
 
 
 def frame_pairs(num_frames: int) -> list[tuple[int, int]]:
@@ -134,3 +142,76 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
             part.point_tracks = members[part.point_tracks]  # indices into the input tracks
         result.models[label], result.track_indices[label] = model, members
     return result
+
+
+def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Reconstruction, threshold: float) -> Tensor:
+    """Which tracks a static point explains in the scene's cameras: (V, N, 2) undistorted pixels,
+    (V, N) visibility and (V, 3, 3) K over the state's V views, the scene's ``view_indices`` in
+    the same numbering -> (N,) bool: seen in two registered views or more, and one point
+    (linear triangulation over all of them) in front of each and within ``threshold`` px of
+    every observation. A track with too little parallax passes (no evidence against it)."""
+    V, N = visible.shape
+    R = torch.zeros(V, 3, 3, dtype=torch.float64)
+    t = torch.zeros(V, 3, dtype=torch.float64)
+    registered = torch.zeros(V, dtype=torch.bool)
+    views = torch.tensor(scene.view_indices, dtype=torch.long)
+    R[views], t[views], registered[views] = scene.cameras.R, scene.cameras.t, True
+    seen = visible & registered[:, None]
+    normalized = (torch.linalg.inv(K)[:, None] @ to_homogeneous(pixels)[..., None])[..., :2, 0]  # (V, N, 2)
+    X = triangulate_multiview(normalized, seen, torch.cat([R, t[..., None]], dim=-1))  # (N, 4)
+    camera_points = (R[:, None] @ X[None, :, :3, None])[..., 0] + t[:, None] * X[None, :, 3:]  # (V, N, 3) up to X's scale
+    depth_sign = torch.sign(camera_points[..., 2] * X[None, :, 3].sign())
+    projected = (K[:, None] @ camera_points[..., None])[..., 0]
+    errors = (projected[..., :2] / projected[..., 2:] - pixels).norm(dim=-1)
+    fits = (errors <= threshold) & (depth_sign > 0)
+    return (seen.sum(0) >= 2) & (fits | ~seen).all(0)
+
+
+class ReconstructObjects(ConfiguredStage):
+    """After :class:`~torchsfm.sfm.stages.MapIncrementally`, with the segmentation's
+    ``track_labels`` (``moving_objects.reconstruct_objects``): a segment most of whose tracks a
+    static point explains in the scene's cameras (:func:`consistent_with_scene`, within
+    ``reconstruction.max_reprojection_error``) is part of the static scene (the segmentation cut
+    the scene apart): such segments go back to it and the scene is mapped again. Every other
+    moving body with at least ``min_object_tracks`` tracks seen in ``min_object_frames`` frames
+    is reconstructed from its tracks (:func:`reconstruct_tracks`, the views' K; points in the
+    body's colour). Fills ``reconstruction.objects`` (views by the state's indices)."""
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        labels = state.track_labels.clone()
+        pixels, visible = state.all_tracks.dense(state.corners, len(state.corners))
+        static = consistent_with_scene(pixels, visible, state.K, state.reconstruction, self.config.reconstruction.max_reprojection_error)
+        merged = [label for label in range(1, int(labels.max()) + 1)
+                  if bool((labels == label).any()) and float(static[labels == label].double().mean()) > 0.5]
+        if merged:
+            state.report(f"moving bodies {merged}: a static point explains most of their tracks in the scene's cameras; "
+                         "they are part of the scene: mapping it again")
+            labels[torch.isin(labels, torch.tensor(merged))] = 0
+            state.tracks = state.all_tracks.subset(labels == 0)
+            scene = map_incrementally(state, self.config)
+            scene.moving_objects = state.reconstruction.moving_objects
+            scene.moving_rejections_per_view = dict(enumerate((visible & (labels != 0)[None]).sum(1).tolist()))
+            state.reconstruction = scene
+        state.reconstruction.objects = [self._body(state, label, pixels[:, labels == label], visible[:, labels == label])
+                                        for label in range(1, int(labels.max()) + 1) if bool((labels == label).any())]
+        return state
+
+    def _body(self, state: ViewSet, label: int, pixels: Tensor, visible: Tensor) -> MovingObject:
+        settings = self.config.moving_objects
+        long_enough = visible.sum(0) >= settings.min_object_frames
+        count = int(long_enough.sum())
+        body = MovingObject(label=label, num_tracks=visible.shape[1])
+        if count < settings.min_object_tracks:
+            body.reason = (f"{count} of its {visible.shape[1]} tracks are seen in {settings.min_object_frames} frames or more "
+                           f"(needs {settings.min_object_tracks}: moving_objects.min_object_tracks)")
+        else:
+            try:
+                body.model = reconstruct_tracks(pixels[:, long_enough], state.K, visible[:, long_enough], config=self.config,
+                                                generator=state.generator)
+                body.model.image_names = [state.names[v] for v in body.model.view_indices]
+                body.model.image_sizes = state.reconstruction.image_sizes[:1].expand(body.model.num_views, 2).clone()
+                body.model.colors[:] = BODY_COLOURS[(label - 1) % len(BODY_COLOURS)]
+            except TorchSfmError as error:
+                body.reason = f"no model from its {count} tracks: {error}"
+        state.report(f"moving body {label}: " + (body.reason or f"{body.model.num_views} views, {body.model.num_points} points"))
+        return body

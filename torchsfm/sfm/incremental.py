@@ -9,6 +9,7 @@ mapper (:mod:`torchsfm.sfm.mapping`).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -20,6 +21,7 @@ from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import read_image
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
+from torchsfm.sfm.from_tracks import ReconstructObjects
 from torchsfm.sfm.stages import Pipeline, Progress, ViewSet, default_pipeline
 from torchsfm.validation import check_finite
 
@@ -39,7 +41,7 @@ def shared_focal(focals: list[float | None]) -> float | None:
 def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, distortion: Tensor | None = None,
                 names: list[str] | None = None, config: Config | None = None,
                 generator: torch.Generator | None = None, progress: Progress | None = None,
-                pipeline: Pipeline | None = None) -> Reconstruction:
+                pipeline: Pipeline | None = None, moving_objects: str | None = None) -> Reconstruction:
     """Reconstruct a calibrated image sequence.
 
     Images given as paths are read here; one that cannot be read is listed in ``unregistered``
@@ -60,7 +62,13 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         config: every stage's settings; generator: the random source of all RANSACs.
         progress: called with a message at each step.
         pipeline: the stages to run (default: :func:`~torchsfm.sfm.stages.default_pipeline` of
-            ``config``); a user may swap, remove or add stages (see :mod:`torchsfm.sfm.stages`).
+            ``config``, then :class:`~torchsfm.sfm.from_tracks.ReconstructObjects` when
+            ``moving_objects.reconstruct_objects``); a user may swap, remove or add stages (see
+            :mod:`torchsfm.sfm.stages`).
+        moving_objects: ``"reject"`` (independently moving objects' tracks are left out of the
+            model: ``moving_objects.enabled``) or ``"reconstruct"`` (and each moving body is
+            reconstructed as its own model: ``model.objects``, each body's scale its own);
+            None: as ``config`` says.
 
     Returns:
         A :class:`~torchsfm.reconstruction.Reconstruction` of the registered views
@@ -103,13 +111,23 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
     config = config or Config()
+    if moving_objects is not None:
+        if moving_objects not in ("reject", "reconstruct"):
+            raise InputError(f"moving_objects must be 'reject' or 'reconstruct', got {moving_objects!r}")
+        config = replace(config, moving_objects=replace(config.moving_objects, enabled=True,
+                                                        reconstruct_objects=moving_objects == "reconstruct"))
+    if pipeline is None:
+        pipeline = default_pipeline(config)
+        if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
+            pipeline.append(ReconstructObjects(config))
     state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
                        progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif))
-    state = (pipeline or default_pipeline(config))(state)
+    state = pipeline(state)
     model = state.reconstruction
     model.timings = state.timings
     model.view_indices = [kept[v] for v in model.view_indices]
-    for other in model.other_models:
+    bodies = [part for body in model.objects if body.model is not None for part in (body.model, *body.model.other_models)]
+    for other in model.other_models + bodies:
         other.view_indices = [kept[v] for v in other.view_indices]
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}

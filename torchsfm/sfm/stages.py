@@ -48,8 +48,10 @@ class ViewSet:
         generator: the random source of every RANSAC; report: progress messages.
         greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
             the same undistorted; putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
-            tracks; rejections, rejected_per_view: the moving-object decision; reconstruction:
-            the result; timings: seconds per stage.
+            tracks; rejections, rejected_per_view: the moving-object decision; all_tracks,
+            track_labels: with ``moving_objects.reconstruct_objects``, the tracks before the
+            decision and each one's rigid-motion label (T,) (0 the static scene, 1..k the moving
+            bodies, -1 none); reconstruction: the result; timings: seconds per stage.
     """
 
     images: list[Tensor]
@@ -68,6 +70,8 @@ class ViewSet:
     tracks: Tracks | None = None
     rejections: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
     rejected_per_view: list[int] = field(default_factory=list)
+    all_tracks: Tracks | None = None
+    track_labels: Tensor | None = None
     reconstruction: Reconstruction | None = None
     timings: dict[str, float] = field(default_factory=dict)
 
@@ -148,9 +152,12 @@ class RejectMovingObjects(ConfiguredStage):
 
     def forward(self, state: ViewSet) -> ViewSet:
         if self.config.moving_objects.enabled:
-            state.tracks, state.rejections, state.rejected_per_view = reject_moving_tracks(
-                state.tracks, state.corners, self.config, state.generator)
+            everything = state.tracks
+            state.tracks, state.rejections, state.rejected_per_view, labels = reject_moving_tracks(
+                everything, state.corners, self.config, state.generator)
             state.report(f"{state.tracks.num_tracks} tracks kept as static")
+            if self.config.moving_objects.reconstruct_objects:
+                state.all_tracks, state.track_labels = everything, labels
         return state
 
 

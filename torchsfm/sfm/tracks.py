@@ -71,6 +71,15 @@ class Tracks:
         offsets = torch.cumsum(torch.tensor([0] + [values.shape[0] for values in per_view]), 0)
         return torch.cat(per_view)[offsets[self.view] + self.corner]
 
+    def dense(self, corners: list[Tensor], num_views: int) -> tuple[Tensor, Tensor]:
+        """Every track's pixels in every view, (V, T, 2) float64 (0 where unseen), and (V, T) bool
+        where it is seen, from the per-view corners (K_v, 2)."""
+        pixels = torch.zeros(num_views, self.num_tracks, 2, dtype=torch.float64)
+        visible = torch.zeros(num_views, self.num_tracks, dtype=torch.bool)
+        pixels[self.view, self.track] = self.gather(corners).double()
+        visible[self.view, self.track] = True
+        return pixels, visible
+
     def subset(self, keep: Tensor) -> Tracks:
         """The tracks where ``keep`` (num_tracks,) bool is True, renumbered in order."""
         mine = keep[self.track]

@@ -5,7 +5,7 @@ on the tracks built from them."""
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -138,20 +138,21 @@ def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, i
 
 
 def reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator
-                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection], list[int]]:
+                          ) -> tuple[Tracks, dict[tuple[int, int, int], MovingObjectRejection], list[int], Tensor]:
     """Keep the tracks :func:`~torchsfm.moving.whole_track.reject_moving_objects_in_tracks` keeps
-    (``moving_objects.track_method``; the triplet votes use every consecutive view triplet; tracks
-    it cannot test are dropped too). Returns the kept tracks (renumbered), each tested triplet's
-    result, and per view the number of its observations rejected."""
-    V, T = len(corners), tracks.num_tracks
-    pixels = torch.zeros(V, T, 2, dtype=torch.float64)
-    visible = torch.zeros(V, T, dtype=torch.bool)
-    pixels[tracks.view, tracks.track] = tracks.gather(corners)
-    visible[tracks.view, tracks.track] = True
+    (``moving_objects.track_method``, ``segmentation`` with ``reconstruct_objects``; the triplet
+    votes use every consecutive view triplet; tracks it cannot test are dropped too). Returns the
+    kept tracks (renumbered), each tested triplet's result, per view the number of its
+    observations rejected, and every track's rigid-motion label (T,) (0 the static scene, -1
+    none; all -1 for ``triplets``)."""
+    V = len(corners)
+    pixels, visible = tracks.dense(corners, V)
     triplets = [(first, first + 1, first + 2) for first in range(V - 2)]
+    if config.moving_objects.reconstruct_objects:
+        config = replace(config, moving_objects=replace(config.moving_objects, track_method="segmentation"))
     decision = reject_moving_objects_in_tracks(pixels, visible, triplets=triplets, config=config, generator=generator)
     results = dict(zip(decision.triplets, decision.results))
     rejected_per_view = (visible & ~decision.background_mask[None]).sum(1).tolist()
-    return tracks.subset(decision.background_mask), results, rejected_per_view
+    return tracks.subset(decision.background_mask), results, rejected_per_view, decision.group_labels
 
 

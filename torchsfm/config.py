@@ -506,6 +506,9 @@ class SegmentationConfig:
     included, at most ``max_motions``) is the one before the largest drop of the merge links
     (links below ``link_floor`` count as none; one motion if no drop reaches
     ``min_link_drop``). Tracks seen in fewer than ``min_frames`` frames are left unassigned.
+    More than ``max_tracks`` tracks (the affinity is N × N): a seeded subset of that many is
+    clustered and every other track goes to the motion whose fundamental matrices explain it
+    best, within 3× that motion's median residual (else it is left unassigned).
     """
 
     hypotheses: int = 2000
@@ -526,6 +529,7 @@ class SegmentationConfig:
     restarts: int = 10
     kmeans_iterations: int = 30
     min_frames: int = 3
+    max_tracks: int = 3000
 
     @property
     def model_kinds(self) -> list[str]:
@@ -534,6 +538,7 @@ class SegmentationConfig:
 
     def __post_init__(self) -> None:
         _require(self.hypotheses >= 10, "hypotheses", self.hypotheses, "must be >= 10")
+        _require(self.max_tracks >= 100, "max_tracks", self.max_tracks, "must be >= 100")
         _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine", "homography"}, "models",
                  self.models, "a comma-separated list of fundamental, affine, homography")
         _require(self.sample_frames >= 2, "sample_frames", self.sample_frames, "must be >= 2")

@@ -184,3 +184,17 @@ def test_four_point_homography_is_exact_and_the_plane_model_segments():
     inliers = data.labels >= 0
     assert result.num_motions == 3
     assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
+
+
+def test_more_tracks_than_max_tracks_cluster_a_subset_and_fit_the_rest_to_the_motions():
+    """The 2-object scene (about 560 tracks, 0.5 px noise, 10 % outliers) with only 250 clustered
+    (``max_tracks``): the number of motions is still found, the affinity covers the clustered
+    tracks only (the outliers among them dropped), the others go to the motion whose F fits them (inlier misclassification within
+    2 %, as with all clustered), and at least 90 % of the outliers stay unassigned."""
+    data = scene(4, 2)
+    result = segment_motions(data.tracks, config=SegmentationConfig(max_tracks=250), generator=torch.Generator().manual_seed(0))
+    inliers = data.labels >= 0
+    n = result.clustered.numel()  # the subset less the tracks it finds to be outliers
+    assert result.num_motions == 3 and 200 <= n <= 250 and result.affinity.shape == (n, n)
+    assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
+    assert float((result.labels[~inliers] == -1).double().mean()) >= 0.9

@@ -76,7 +76,8 @@ class MotionSegmentation:
             of their RMS Sampson distance (pixels) to one F per frame pair fitted to all of them
             (:func:`motion_residuals`); NaN for a label too small to fit.
         eigenvalues: (pieces,) leading eigenvalues of the normalized affinity.
-        affinity: (N, N) the sparsified symmetric affinity the clustering used.
+        affinity: (n, n) the sparsified symmetric affinity the clustering used, over the
+            ``clustered`` (n,) tracks (input indices).
     """
 
     labels: Tensor
@@ -86,6 +87,7 @@ class MotionSegmentation:
     residuals: Tensor
     eigenvalues: Tensor
     affinity: Tensor
+    clustered: Tensor
 
 
 def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: SegmentationConfig | None = None,
@@ -115,6 +117,11 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     if int(judged.sum()) < MIN_VECTORS:
         raise NotEnoughDataError(f"only {int(judged.sum())} tracks are seen in {config.min_frames} frames (needs {MIN_VECTORS})")
     index = torch.nonzero(judged)[:, 0]
+    left_out = index[:0]
+    if index.numel() > config.max_tracks:  # cluster a seeded subset; the others take their neighbours' label
+        chosen = torch.zeros(index.numel(), dtype=torch.bool, device=index.device)
+        chosen[torch.randperm(index.numel(), generator=generator, device=generator.device)[:config.max_tracks].to(index.device)] = True
+        index, left_out = index[chosen], index[~chosen]
     similarity = None
     for _ in range(1 + config.guided_rounds):
         fits = [MODELS[name](tracks[:, index], visible[:, index], config, generator, similarity) for name in config.model_kinds]
@@ -144,13 +151,26 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     relabel = torch.empty_like(order)
     relabel[order] = torch.arange(num_motions, device=tracks.device)
     labels = torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
-    full = torch.zeros(N, N, dtype=affinity.dtype, device=tracks.device)
-    full[index[:, None], index[None]] = affinity
+    if left_out.numel():
+        labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
     residuals = motion_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))
     return MotionSegmentation(labels=labels, num_motions=num_motions,
                               sizes=sizes[order], coverage=coverage[order], residuals=residuals,
-                              eigenvalues=eigenvalues, affinity=full)
+                              eigenvalues=eigenvalues, affinity=affinity, clustered=index)
+
+
+def label_by_residual(tracks: Tensor, visible: Tensor, labels: Tensor, queries: Tensor, num_motions: int) -> Tensor:
+    """Labels for the ``queries`` (M,) tracks left out of the clustering: the motion whose
+    fundamental matrices (fitted to its labelled tracks, :func:`track_residuals`) explain each
+    best, if within 3× that motion's median residual over its own tracks, else -1 (an outlier):
+    (F, N, 2) tracks, (F, N) visibility, (N,) labels -> (M,) labels."""
+    members = labels[None] == torch.arange(num_motions, device=labels.device)[:, None]
+    rms, judged = track_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))  # (C, N)
+    own = torch.where(judged & members, rms, torch.nan).nanmedian(-1).values  # (C,)
+    candidate = torch.where(judged[:, queries] & (rms[:, queries] <= 3 * own[:, None]), rms[:, queries], torch.inf)
+    best = candidate.min(0)
+    return torch.where(torch.isfinite(best.values), best.indices, -1)
 
 
 def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: int, size: int,
@@ -418,15 +438,16 @@ def frame_pairs(num_frames: int, count: int) -> Tensor:
     return torch.stack([starts, starts + gap], 1)
 
 
-def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
-    """How well one rigid motion explains each of C track sets: (F, N, 2) tracks, (F, N)
-    visibility, (C, N) bool members, (P, 2) frame pairs -> (C,) median over each set's tracks of
-    their RMS Sampson distance (pixels) to the set's F of every pair: a least-trimmed-squares
-    8-point fit (``REFITS`` refits on the half of the set with the smallest residuals, so up to
-    half of it may be strays). NaN where a set has fewer than 8 tracks in every pair."""
+def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor]:
+    """Every track's RMS Sampson distance (pixels) to one F per frame pair fitted to each of C
+    track sets: (F, N, 2) tracks, (F, N) visibility, (C, N) bool members, (P, 2) frame pairs ->
+    (C, N) RMS and (C, N) bool where defined (the track seen in a pair the set could fit). A
+    least-trimmed-squares 8-point fit (``REFITS`` refits on the half of the set with the smallest
+    residuals, so up to half of it may be strays)."""
     a, b = pairs[:, 0], pairs[:, 1]
     x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
-    seen = members[:, None] & (visible[a] & visible[b])[None]  # (C, P, N)
+    both = (visible[a] & visible[b])[None]  # (1, P, N)
+    seen = members[:, None] & both  # (C, P, N)
     weights = seen.to(tracks.dtype)
     usable = weights.sum(-1) >= SAMPLE_SIZE  # (C, P)
     C = members.shape[0]
@@ -437,8 +458,14 @@ def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Te
         half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, P)
         weights = (seen & (residual <= half[..., None])).to(tracks.dtype)
         usable &= weights.sum(-1) >= SAMPLE_SIZE
-    valid = seen & usable[..., None]
+    valid = both & usable[..., None]
     squares = torch.where(valid, residual.square(), 0.0).sum(1)
-    rms = (squares / valid.sum(1).clamp_min(1)).sqrt()  # (C, N)
-    judged = members & valid.any(1)
-    return torch.where(judged, rms, torch.nan).nanmedian(-1).values
+    return (squares / valid.sum(1).clamp_min(1)).sqrt(), valid.any(1)
+
+
+def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+    """How well one rigid motion explains each of C track sets: (C,) median over each set's
+    tracks of their RMS Sampson distance (:func:`track_residuals`); NaN where a set has fewer than
+    8 tracks in every pair."""
+    rms, judged = track_residuals(tracks, visible, members, pairs)
+    return torch.where(judged & members, rms, torch.nan).nanmedian(-1).values

@@ -59,6 +59,7 @@ from torchsfm.robust.samplers import resolve_generator
 
 SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
+CHUNK_ELEMENTS = 2**22  # numbers per hypothesis chunk: memory bounded for thousands of tracks
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
 
 
@@ -239,14 +240,17 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     H, m = frames.shape
     worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
     pairs_seen = torch.zeros_like(worst, dtype=torch.long)
+    chunk = max(1, CHUNK_ELEMENTS // (2 * tracks.shape[1]))  # hypotheses at a time: (chunk, N, 2) points per frame
     for i in range(m):
         for j in range(i + 1, m):
-            a, b = frames[:, i], frames[:, j]
-            model = fit(tracks[a[:, None], sample], tracks[b[:, None], sample])
-            residual = distance(model, tracks[a], tracks[b])
-            both = visible[a] & visible[b]
-            worst = torch.where(both, torch.maximum(worst, residual), worst)
-            pairs_seen += both
+            for first in range(0, H, chunk):
+                rows = slice(first, first + chunk)
+                a, b = frames[rows, i], frames[rows, j]
+                model = fit(tracks[a[:, None], sample[rows]], tracks[b[:, None], sample[rows]])
+                residual = distance(model, tracks[a], tracks[b])
+                both = visible[a] & visible[b]
+                worst[rows] = torch.where(both, torch.maximum(worst[rows], residual), worst[rows])
+                pairs_seen[rows] += both
     defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
     return worst, defined.scatter(1, sample, False)
 
@@ -260,13 +264,19 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.affine_frames, 4,
                                                config, generator, guide)
     H, m = frames.shape
-    trajectories = tracks[frames].permute(0, 2, 1, 3).reshape(H, tracks.shape[1], 2 * m)  # (H, N, 2m)
-    origin = trajectories[torch.arange(H, device=tracks.device), sample[:, 0]]  # (H, 2m)
-    spans = trajectories.gather(1, sample[:, 1:, None].expand(-1, -1, 2 * m)) - origin[:, None]  # (H, 3, 2m)
-    basis, triangle = torch.linalg.qr(spans.transpose(1, 2))  # (H, 2m, 3)
-    extent = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
-    offsets = trajectories - origin[:, None]
-    residual = (offsets - (offsets @ basis) @ basis.transpose(1, 2)).norm(dim=-1) / m ** 0.5
+    N = tracks.shape[1]
+    residual = tracks.new_empty(H, N)
+    extent = tracks.new_empty(H)
+    chunk = max(1, CHUNK_ELEMENTS // (N * 2 * m))  # hypotheses at a time: (chunk, N, 2m) trajectories
+    for first in range(0, H, chunk):
+        rows = slice(first, first + chunk)
+        trajectories = tracks[frames[rows]].permute(0, 2, 1, 3).reshape(-1, N, 2 * m)  # (h, N, 2m)
+        origin = trajectories[torch.arange(trajectories.shape[0], device=tracks.device), sample[rows, 0]]  # (h, 2m)
+        spans = trajectories.gather(1, sample[rows, 1:, None].expand(-1, -1, 2 * m)) - origin[:, None]  # (h, 3, 2m)
+        basis, triangle = torch.linalg.qr(spans.transpose(1, 2))  # (h, 2m, 3)
+        extent[rows] = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
+        offsets = trajectories - origin[:, None]
+        residual[rows] = (offsets - (offsets @ basis) @ basis.transpose(1, 2)).norm(dim=-1) / m ** 0.5
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]
     return residual, defined.scatter(1, sample, False)

@@ -32,6 +32,7 @@ from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import verify_pairs
 
 
+MAX_REMAPS = 3  # the static scene is mapped again at most this many times with the tracks it explains
 BODY_COLOURS = torch.tensor([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180], [70, 240, 240]],
                             dtype=torch.uint8)  # one colour per moving body's points, in turn
 
@@ -144,12 +145,13 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
     return result
 
 
-def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Reconstruction, threshold: float) -> Tensor:
+def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Reconstruction, threshold: float) -> tuple[Tensor, Tensor]:
     """Which tracks a static point explains in the scene's cameras: (V, N, 2) undistorted pixels,
     (V, N) visibility and (V, 3, 3) K over the state's V views, the scene's ``view_indices`` in
-    the same numbering -> (N,) bool: seen in two registered views or more, and one point
-    (linear triangulation over all of them) in front of each and within ``threshold`` px of
-    every observation. A track with too little parallax passes (no evidence against it)."""
+    the same numbering -> (N,) bool testable: seen in two registered views or more, and (N,) bool
+    consistent: testable, and one point (linear triangulation over those views) in front of each
+    and within ``threshold`` px of every observation. A track with too little parallax passes
+    (no evidence against it)."""
     V, N = visible.shape
     R = torch.zeros(V, 3, 3, dtype=torch.float64)
     t = torch.zeros(V, 3, dtype=torch.float64)
@@ -164,15 +166,18 @@ def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Rec
     projected = (K[:, None] @ camera_points[..., None])[..., 0]
     errors = (projected[..., :2] / projected[..., 2:] - pixels).norm(dim=-1)
     fits = (errors <= threshold) & (depth_sign > 0)
-    return (seen.sum(0) >= 2) & (fits | ~seen).all(0)
+    testable = seen.sum(0) >= 2
+    return testable, testable & (fits | ~seen).all(0)
 
 
 class ReconstructObjects(ConfiguredStage):
     """After :class:`~torchsfm.sfm.stages.MapIncrementally`, with the segmentation's
-    ``track_labels`` (``moving_objects.reconstruct_objects``): a segment most of whose tracks a
-    static point explains in the scene's cameras (:func:`consistent_with_scene`, within
+    ``track_labels`` (``moving_objects.reconstruct_objects``): a segment most of whose testable
+    tracks a static point explains in the scene's cameras (:func:`consistent_with_scene`, within
     ``reconstruction.max_reprojection_error``) is part of the static scene (the segmentation cut
-    the scene apart): such segments go back to it and the scene is mapped again. Every other
+    the scene apart), and so is every track the segmentation left unassigned (too short to judge)
+    that a static point explains: they go back to the scene and it is mapped again, up to
+    ``MAX_REMAPS`` times while that adds tracks (each mapping registers views that test more). Every other
     moving body with at least ``min_object_tracks`` tracks seen in ``min_object_frames`` frames
     is reconstructed from its tracks (:func:`reconstruct_tracks`, the views' K; points in the
     body's colour). Fills ``reconstruction.objects`` (views by the state's indices)."""
@@ -180,13 +185,17 @@ class ReconstructObjects(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         labels = state.track_labels.clone()
         pixels, visible = state.all_tracks.dense(state.corners, len(state.corners))
-        static = consistent_with_scene(pixels, visible, state.K, state.reconstruction, self.config.reconstruction.max_reprojection_error)
-        merged = [label for label in range(1, int(labels.max()) + 1)
-                  if bool((labels == label).any()) and float(static[labels == label].double().mean()) > 0.5]
-        if merged:
-            state.report(f"moving bodies {merged}: a static point explains most of their tracks in the scene's cameras; "
-                         "they are part of the scene: mapping it again")
-            labels[torch.isin(labels, torch.tensor(merged))] = 0
+        for _ in range(MAX_REMAPS):
+            testable, static = consistent_with_scene(pixels, visible, state.K, state.reconstruction,
+                                                     self.config.reconstruction.max_reprojection_error)
+            merged = [label for label in range(1, int(labels.max()) + 1)
+                      if int((testable & (labels == label)).sum()) and 2 * int((static & (labels == label)).sum()) > int((testable & (labels == label)).sum())]
+            joining = ((labels == -1) & static) | torch.isin(labels, torch.tensor(merged, dtype=torch.long))
+            if not bool(joining.any()):
+                break
+            state.report(f"{int(joining.sum())} tracks back to the static scene (a static point explains them in its cameras"
+                         + (f"; segments {merged}" if merged else "") + "): mapping it again")
+            labels[joining] = 0
             state.tracks = state.all_tracks.subset(labels == 0)
             scene = map_incrementally(state, self.config)
             scene.moving_objects = state.reconstruction.moving_objects

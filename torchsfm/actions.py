@@ -31,7 +31,7 @@ from torchsfm.sfm.incremental import reconstruct
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
-from torchsfm.visualization import corners_figure, matches_figure, write_png
+from torchsfm.visualization import corners_figure, matches_figure, segmentation_figure, write_png
 
 SAMPLE = Path(__file__).resolve().parent / "data" / "fountain"
 Progress = Callable[[str], None]
@@ -155,12 +155,17 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
     }
 
 
-def reconstruction_files(model: Reconstruction, summary: dict) -> dict[str, bytes | str]:
+def reconstruction_files(model: Reconstruction, summary: dict, frame: Tensor | None = None) -> dict[str, bytes | str | Tensor]:
     """The files of a multi-view model, by path under the output folder: ``summary.json``, the
     model's ``model.wrl``, ``points.ply`` and ``colmap/*.txt``, and the same for each of its
     ``other_models`` under ``other_models/k/`` (k from 1) and each moving body's model under
-    ``objects/label/`` (its points in the body's colour)."""
-    files: dict[str, bytes | str] = {"summary.json": json.dumps(summary, indent=2) + "\n"}
+    ``objects/label/`` (its points in the body's colour); with ``segmented_tracks``,
+    ``segmentation.png``: the tracks coloured by motion over ``frame`` (an image; else white)."""
+    files: dict[str, bytes | str | Tensor] = {"summary.json": json.dumps(summary, indent=2) + "\n"}
+    if model.segmented_tracks is not None:
+        pixels, visible, labels = model.segmented_tracks
+        width, height = model.image_sizes[0].tolist()
+        files["segmentation.png"] = segmentation_figure(pixels, visible, labels, (width, height), frame)
     parts = ([("", model)] + [(f"other_models/{k}/", other) for k, other in enumerate(model.other_models, start=1)]
              + [(f"objects/{body.label}/", body.model) for body in model.objects if body.model is not None])
     for folder, part in parts:
@@ -181,7 +186,8 @@ def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | 
     model = reconstruct(paths, K, distortion=distortion, config=config, generator=torch.Generator().manual_seed(seed),
                         progress=progress)
     summary = reconstruction_summary(model, time.perf_counter() - start, config)
-    files = reconstruction_files(model, summary)
+    frame = read_image(paths[model.view_indices[0]]) if model.segmented_tracks is not None else None
+    files = reconstruction_files(model, summary, frame)
     if progress:
         progress("writing model files ...")
     write_files(Path(out), files)

@@ -43,6 +43,9 @@ class Reconstruction:
             and frame; empty when every reconstructed view is in this one.
         objects: with ``moving_objects.reconstruct_objects``: every independently moving body
             the segmentation found (:class:`MovingObject`), with its model or why it has none.
+        segmented_tracks: with ``moving_objects.reconstruct_objects``: every track's (V, T, 2)
+            undistorted pixels and (V, T) visibility over the views read, and its final (T,)
+            label (0 the scene, k a body, -1 none) — what ``segmentation.png`` draws.
     """
 
     cameras: Camera
@@ -63,6 +66,7 @@ class Reconstruction:
     point_tracks: Tensor | None = None
     other_models: list[Reconstruction] = field(default_factory=list)
     objects: list[MovingObject] = field(default_factory=list)
+    segmented_tracks: tuple[Tensor, Tensor, Tensor] | None = None
 
     @property
     def num_views(self) -> int:

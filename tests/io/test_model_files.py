@@ -12,6 +12,7 @@ from torchsfm.io.ply import write_ply
 from torchsfm.io.vrml import vrml_text, write_vrml
 from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.testing import synthetic_two_view
+from torchsfm.visualization import MOTION_COLOURS
 
 
 def _model(distortion=(0.0, 0.0)):
@@ -111,4 +112,10 @@ def test_each_moving_body_with_a_model_gets_its_folder_and_a_summary_row():
     assert summary["objects"][1] == {"label": 3, "tracks": 12, "reason": "too few tracks"}
     files = reconstruction_files(model, summary)
     assert {"objects/1/model.wrl", "objects/1/points.ply", "objects/1/colmap/images.txt"} <= files.keys()
-    assert not any(name.startswith("objects/3/") for name in files)
+    assert not any(name.startswith("objects/3/") for name in files) and "segmentation.png" not in files
+    width, height = model.image_sizes[0].tolist()
+    pixels = torch.tensor([[[10.0, 10.0], [50.0, 30.0]], [[12.0, 11.0], [60.0, 32.0]]], dtype=torch.float64)  # (V, T, 2)
+    model.segmented_tracks = (pixels, torch.ones(2, 2, dtype=torch.bool), torch.tensor([0, 1]))
+    figure = reconstruction_files(model, summary)["segmentation.png"]
+    assert figure.shape == (3, height, width) and figure.dtype == torch.uint8
+    assert tuple(figure[:, 32, 60].tolist()) == MOTION_COLOURS[1]  # body 1's last position, in its colour

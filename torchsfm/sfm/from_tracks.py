@@ -30,11 +30,10 @@ from torchsfm.sfm.pipeline import ConfiguredStage
 from torchsfm.sfm.stages import Progress, ViewSet
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import verify_pairs
+from torchsfm.visualization import MOTION_COLOURS
 
 
 MAX_REMAPS = 3  # the static scene is mapped again at most this many times with the tracks it explains
-BODY_COLOURS = torch.tensor([[230, 25, 75], [60, 180, 75], [0, 130, 200], [245, 130, 48], [145, 30, 180], [70, 240, 240]],
-                            dtype=torch.uint8)  # one colour per moving body's points, in turn
 
 
 def frame_pairs(num_frames: int) -> list[tuple[int, int]]:
@@ -180,7 +179,8 @@ class ReconstructObjects(ConfiguredStage):
     ``MAX_REMAPS`` times while that adds tracks (each mapping registers views that test more). Every other
     moving body with at least ``min_object_tracks`` tracks seen in ``min_object_frames`` frames
     is reconstructed from its tracks (:func:`reconstruct_tracks`, the views' K; points in the
-    body's colour). Fills ``reconstruction.objects`` (views by the state's indices)."""
+    body's colour of :data:`~torchsfm.visualization.MOTION_COLOURS`). Fills
+    ``reconstruction.objects`` (views by the state's indices) and ``segmented_tracks``."""
 
     def forward(self, state: ViewSet) -> ViewSet:
         labels = state.track_labels.clone()
@@ -201,6 +201,7 @@ class ReconstructObjects(ConfiguredStage):
             scene.moving_objects = state.reconstruction.moving_objects
             scene.moving_rejections_per_view = dict(enumerate((visible & (labels != 0)[None]).sum(1).tolist()))
             state.reconstruction = scene
+        state.reconstruction.segmented_tracks = (pixels, visible, labels)
         state.reconstruction.objects = [self._body(state, label, pixels[:, labels == label], visible[:, labels == label])
                                         for label in range(1, int(labels.max()) + 1) if bool((labels == label).any())]
         return state
@@ -219,7 +220,7 @@ class ReconstructObjects(ConfiguredStage):
                                                 generator=state.generator)
                 body.model.image_names = [state.names[v] for v in body.model.view_indices]
                 body.model.image_sizes = state.reconstruction.image_sizes[:1].expand(body.model.num_views, 2).clone()
-                body.model.colors[:] = BODY_COLOURS[(label - 1) % len(BODY_COLOURS)]
+                body.model.colors[:] = torch.tensor(MOTION_COLOURS[label % len(MOTION_COLOURS)], dtype=torch.uint8)
             except TorchSfmError as error:
                 body.reason = f"no model from its {count} tracks: {error}"
         state.report(f"moving body {label}: " + (body.reason or f"{body.model.num_views} views, {body.model.num_points} points"))

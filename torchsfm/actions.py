@@ -28,7 +28,7 @@ from torchsfm.images import read_image
 from torchsfm.io.ply import ply_bytes
 from torchsfm.io.vrml import vrml_text
 from torchsfm.sfm.incremental import reconstruct
-from torchsfm.reconstruction import Reconstruction
+from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import corners_figure, matches_figure, segmentation_figure, write_png
@@ -149,10 +149,20 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
                           "points": other.num_points} for k, other in enumerate(model.other_models, start=1)],
         "objects": [{"label": body.label, "tracks": body.num_tracks, "reason": body.reason or None,
                      **({"folder": f"objects/{body.label}", "views": body.model.view_indices, "points": body.model.num_points,
-                         "scale": "its own (unknown relative to the scene)"} if body.model is not None else {})}
+                         "scale": "its own (unknown relative to the scene)", "steady_motion": _steady(body, model)}
+                        if body.model is not None else {})}
                     for body in model.objects],
         "config": config_to_dict(config),
     }
+
+
+def _steady(body: MovingObject, scene: Reconstruction) -> dict | None:
+    """A body's scale and path by the steady-motion prior, JSON-ready (None where undetermined)."""
+    steady = body.steady_trajectory(scene)
+    if steady is None:
+        return None
+    scale, views, path = steady
+    return {"scale": scale, "views": views, "path": path.tolist()}
 
 
 def reconstruction_files(model: Reconstruction, summary: dict, frame: Tensor | None = None) -> dict[str, bytes | str | Tensor]:

@@ -26,20 +26,28 @@ class CameraErrors:
     relative_rotation: Tensor
 
 
-def camera_errors(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -> CameraErrors:
-    """Align estimated cameras (V, 3, 3), (V, 3) (camera from world) to the ground truth.
-
-    The similarity's rotation is the chordal mean of R_trueᵢᵀ Rᵢ (from the orientations, which
-    pin it down even for cameras on a line or an arc), its scale and translation the least-squares
-    fit of the rotated centres to the true centres.
-    """
+def similarity_alignment(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The similarity taking the estimated cameras' world (V, 3, 3), (V, 3) (camera from world)
+    to the ground truth's: (scale, A (3, 3), offset (3,)) with world_true ≈ scale A world + offset.
+    A is the chordal mean of R_trueᵢᵀ Rᵢ (from the orientations, which pin it down even for
+    cameras on a line or an arc), scale and offset the least-squares fit of the rotated centres
+    to the true centres."""
     centres = (-R.transpose(-1, -2) @ t[..., None])[..., 0]
     true_centres = (-R_true.transpose(-1, -2) @ t_true[..., None])[..., 0]
-    A = nearest_rotation((R_true.transpose(-1, -2) @ R).sum(0))  # world_true ≈ s A world + b
+    A = nearest_rotation((R_true.transpose(-1, -2) @ R).sum(0))
     rotated = centres @ A.T
     mean, true_mean = rotated.mean(0), true_centres.mean(0)
     scale = ((rotated - mean) * (true_centres - true_mean)).sum() / (rotated - mean).square().sum().clamp_min(1e-300)
-    centre = (scale * (rotated - mean) + true_mean - true_centres).norm(dim=-1)
+    return scale, A, true_mean - scale * mean
+
+
+def camera_errors(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -> CameraErrors:
+    """Align estimated cameras (V, 3, 3), (V, 3) (camera from world) to the ground truth
+    (:func:`similarity_alignment`) and measure their errors."""
+    scale, A, offset = similarity_alignment(R, t, R_true, t_true)
+    centres = (-R.transpose(-1, -2) @ t[..., None])[..., 0]
+    true_centres = (-R_true.transpose(-1, -2) @ t_true[..., None])[..., 0]
+    centre = (scale * centres @ A.T + offset - true_centres).norm(dim=-1)
     rotation = rotation_angle(R @ A.T, R_true)
     pairs = torch.triu_indices(R.shape[0], R.shape[0], 1)
     relative = rotation_angle(R[pairs[0]] @ R[pairs[1]].transpose(-1, -2), R_true[pairs[0]] @ R_true[pairs[1]].transpose(-1, -2))

@@ -108,7 +108,8 @@ class MovingObject:
 
     The body's scale is its own: unknown relative to the scene's (a body moving along the
     camera's line of sight at a constant speed is as consistent with a nearer, static one).
-    :meth:`poses_in_scene` places it in the scene's frame for a chosen scale.
+    :meth:`poses_in_scene` places it in the scene's frame for a chosen scale;
+    :meth:`steady_trajectory` chooses the one under which it moves most steadily.
     """
 
     label: int
@@ -133,3 +134,38 @@ class MovingObject:
         rotations = R_scene.transpose(1, 2) @ R_body
         positions = (R_scene.transpose(1, 2) @ (scale * t_body - t_scene)[..., None])[..., 0]
         return views, rotations, positions
+
+    def steady_trajectory(self, scene: Reconstruction) -> tuple[float, list[int], Tensor] | None:
+        """The scale (scene units per model unit) under which some point of the body moves with the
+        least acceleration through the scene over evenly spaced views, and that point's path: (s,
+        views, (n, 3) positions in the scene's frame). A prior (cars and people move steadily),
+        exact for a body turning steadily about a point that moves at constant velocity; second
+        differences amplify noise, so it needs many views (measured: exact without noise over 5
+        frames, unusable with 0.3 px noise over 5). A body point u (model units times s) is at
+        X_f = a_f + R_f u + s d_f in view f (:meth:`poses_in_scene`: a_f the positions at scale
+        0, R_f the rotations, d_f the positions' change per unit of scale), linear in (u, s):
+        least squares on Δ²X = 0 over every evenly spaced view triple (a steady turn leaves u free
+        along its axis, which does not touch s). None when fewer than two such triples are shared,
+        when s is not determined (e.g. the camera and the body both moving steadily: every scale
+        is as smooth) or when s ≤ 0."""
+        views, rotations, positions = self.poses_in_scene(scene, 1.0)
+        if len(views) < 4:
+            return None
+        _, _, origins = self.poses_in_scene(scene, 0.0)
+        per_scale = positions - origins
+        index = torch.tensor(views)
+        even = torch.nonzero(index[2:] - index[1:-1] == index[1:-1] - index[:-2]).flatten()
+        if even.numel() < 2:
+            return None
+        rotation_change, scale_change, origin_change = (
+            p[even + 2] - 2 * p[even + 1] + p[even] for p in (rotations, per_scale, origins))
+        system = torch.cat([rotation_change, scale_change[..., None]], dim=-1).reshape(-1, 4)  # rows of Δ²X = 0 in (u, s)
+        _, singular, Vh = torch.linalg.svd(system, full_matrices=False)
+        weak = singular <= 1e-6 * singular[0]  # a steady turn leaves u free along its axis: harmless unless s is free too
+        if bool((Vh[weak, 3].abs() > 1e-2).any()):
+            return None
+        solution = torch.linalg.pinv(system) @ -origin_change.reshape(-1)
+        scale = float(solution[3])
+        if scale <= 0:
+            return None
+        return scale, views, origins + rotations @ solution[:3] + scale * per_scale

@@ -249,6 +249,7 @@ class MovingObjectScene:
         object_rotations: (num_objects, F, 3, 3) each object's rotation since frame 0 (world
             frame): its points at frame f are object_rotations[k - 1, f] (X - c) + c' for its
             frame-0 points X, centre c, and centre c' at f.
+        object_centres: (num_objects, F, 3) each object's centre c' per frame (world).
     """
 
     K: Tensor
@@ -258,11 +259,13 @@ class MovingObjectScene:
     labels: Tensor
     image_size: tuple[int, int]
     object_rotations: Tensor
+    object_centres: Tensor
 
 
 def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
                            object_points: int = 60, outlier_fraction: float = 0.1, noise: float = 0.3,
-                           plane_share: float = 0.5, static_camera: bool = False) -> MovingObjectScene:
+                           plane_share: float = 0.5, static_camera: bool = False,
+                           constant_velocity: bool = False) -> MovingObjectScene:
     """A seeded scene for moving-object rejection (640×480, f = 800 px).
 
     The background is a wall (a share ``plane_share`` of its points, the dominant plane) and
@@ -271,8 +274,10 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     the camera (which moves ~0.5 m and turns ~1.5° per frame, at constant velocity). An object
     takes a new random step every frame: at constant velocity, a point moving straight is, to
     first order, indistinguishable from a static one over three frames (its virtual camera moves
-    at a constant velocity too), for the rigidity constraint and for any three-view test. Outliers are random pixels in
-    every frame. Only points that stay in the image in every frame are kept.
+    at a constant velocity too), for the rigidity constraint and for any three-view test. With
+    ``constant_velocity`` each object repeats its first step and turn instead (a car driving
+    steadily). Outliers are random pixels in every frame. Only points that stay in the image in
+    every frame are kept.
     """
     g = torch.Generator().manual_seed(seed)
     W, H = 640, 480
@@ -304,15 +309,19 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     keep = keep[torch.randperm(keep.numel(), generator=g)[:background_points]]
     tracks, labels = [pixels[:, keep]], [torch.zeros(keep.numel(), dtype=torch.long)]
     object_rotations = torch.eye(3, dtype=torch.float64).repeat(num_objects, num_frames, 1, 1)
+    object_centres = torch.zeros(num_objects, num_frames, 3, dtype=torch.float64)
     for k in range(1, num_objects + 1):
         centre = torch.stack([_uniform((), -3, 3, g), _uniform((), -2, 2, g), _uniform((), 6, 10, g)])
         body = centre + _uniform((3 * object_points, 3), -1, 1, g)
         frames, position = [body], centre
-        for f in range(1, num_frames):  # a new random step and turn every frame
-            direction = _uniform((3,), -1, 1, g)
-            move = direction / direction.norm() * _uniform((), 0.3, 0.6, g)
-            turn = axis_angle_to_rotation(_uniform((3,), -3, 3, g) * math.pi / 180)
+        object_centres[k - 1, 0] = centre
+        for f in range(1, num_frames):  # a new random step and turn every frame (or the first one again)
+            if f == 1 or not constant_velocity:
+                direction = _uniform((3,), -1, 1, g)
+                move = direction / direction.norm() * _uniform((), 0.3, 0.6, g)
+                turn = axis_angle_to_rotation(_uniform((3,), -3, 3, g) * math.pi / 180)
             object_rotations[k - 1, f] = turn @ object_rotations[k - 1, f - 1]
+            object_centres[k - 1, f] = position + move
             frames.append((frames[-1] - position) @ turn.T + position + move)
             position = position + move
         pixels, ok = inside(torch.stack(frames))
@@ -328,7 +337,7 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     labels = torch.cat([labels, torch.full((num_outliers,), -1, dtype=torch.long)])
     order = torch.randperm(labels.numel(), generator=g)
     return MovingObjectScene(K=K, R=R, t=t, tracks=tracks[:, order], labels=labels[order], image_size=(W, H),
-                             object_rotations=object_rotations)
+                             object_rotations=object_rotations, object_centres=object_centres)
 
 
 def rejection_figures(background: Tensor, labels: Tensor) -> dict[str, float]:

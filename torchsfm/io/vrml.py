@@ -21,7 +21,10 @@ def camera_pyramid(K: Tensor, R: Tensor, t: Tensor, image_size: Tensor, depth: f
 
 
 def vrml_text(model: Reconstruction, camera_size: float | None = None) -> str:
-    """VRML 2.0 of a model: coloured PointSet plus one IndexedLineSet pyramid per camera.
+    """VRML 2.0 of a model: coloured PointSet plus one IndexedLineSet pyramid per camera, and for
+    every moving body whose :meth:`~torchsfm.reconstruction.MovingObject.steady_trajectory`
+    exists its points placed at its first view and the path of its steadiest point as a
+    polyline, in the body's colour (its scale from that steady-motion prior).
 
     ``camera_size`` is the pyramids' depth in world units; by default 5% of the extent of the
     cameras and points together.
@@ -46,6 +49,22 @@ def vrml_text(model: Reconstruction, camera_size: float | None = None) -> str:
                   "  geometry IndexedLineSet {", "    coord Coordinate { point ["]
         lines += [f"      {x:.6g} {y:.6g} {z:.6g}," for x, y, z in pyramid.tolist()]
         lines += ["    ] }", "    coordIndex [ 0 1 -1 0 2 -1 0 3 -1 0 4 -1 1 2 3 4 1 -1 ]", "  }", "}"]
+    for body in model.objects:
+        steady = body.steady_trajectory(model) if body.model is not None else None
+        if steady is None:
+            continue
+        scale, _, path = steady
+        _, rotations, positions = body.poses_in_scene(model, scale)
+        placed = (scale * body.model.points3d) @ rotations[0].T + positions[0]
+        r, g, b = (channel / 255 for channel in body.model.colors[0].tolist())
+        lines += [f"# moving body {body.label}: its points at its first view, the path of its steadiest point (scale {scale:.6g} by the steady-motion prior)",
+                  "Shape {", "  geometry PointSet {", "    coord Coordinate { point ["]
+        lines += [f"      {x:.6g} {y:.6g} {z:.6g}," for x, y, z in placed.tolist()]
+        lines += ["    ] }", "    color Color { color [", f"      {r:.4f} {g:.4f} {b:.4f},", "    ] }", "    colorPerVertex FALSE", "  }", "}",
+                  "Shape {", f"  appearance Appearance {{ material Material {{ emissiveColor {r:.4f} {g:.4f} {b:.4f} }} }}",
+                  "  geometry IndexedLineSet {", "    coord Coordinate { point ["]
+        lines += [f"      {x:.6g} {y:.6g} {z:.6g}," for x, y, z in path.tolist()]
+        lines += ["    ] }", f"    coordIndex [ {' '.join(str(k) for k in range(path.shape[0]))} -1 ]", "  }", "}"]
     return "\n".join(lines) + "\n"
 
 

@@ -304,6 +304,10 @@ class PairsConfig:
     inliers) centres the full-resolution search disc of every corner on its predicted position;
     with ``warp_patches``, each corner's NCC patch is also warped by the homography's local
     affine map, so rotation, scale and foreshortening between the views are undone.
+    ``matcher``: ``ncc`` (the thesis' Harris corners and NCC + strength measure, above) or
+    ``sift`` (Kornia's SIFT: ``sift_features`` scale-space keypoints per view, RootSIFT
+    descriptors, mutual nearest neighbours passing Lowe's ratio test at ``sift_ratio``; the same
+    pair selection, verification and mapper).
     """
 
     mode: str = "auto"
@@ -318,8 +322,14 @@ class PairsConfig:
     homography_threshold: float = 8.0
     guided: bool = True
     warp_patches: bool = True
+    matcher: str = "ncc"
+    sift_features: int = 4000
+    sift_ratio: float = 0.8
 
     def __post_init__(self) -> None:
+        _require(self.matcher in ("ncc", "sift"), "matcher", self.matcher, "one of ncc, sift")
+        _require(self.sift_features >= 8, "sift_features", self.sift_features, "must be >= 8")
+        _require(0 < self.sift_ratio <= 1, "sift_ratio", self.sift_ratio, "must lie in (0, 1]")
         _require(self.mode in ("auto", "sequential", "exhaustive", "similarity"), "mode", self.mode,
                  "one of auto, sequential, exhaustive, similarity")
         _require(self.window >= 1, "window", self.window, "must be >= 1")

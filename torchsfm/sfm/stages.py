@@ -28,6 +28,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.sfm.pipeline import ConfiguredStage, Pipeline
+from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, image_centre, putative_matches, reject_moving_tracks, self_calibrate,
                                      verify_pairs)
@@ -47,7 +48,7 @@ class ViewSet:
             every image's EXIF records, if they agree (the estimate's start, refined later).
         generator: the random source of every RANSAC; report: progress messages.
         greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
-            the same undistorted; putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
+            the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``); putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
             tracks; rejections, rejected_per_view: the moving-object decision; all_tracks,
             track_labels: with ``moving_objects.reconstruct_objects``, the tracks before the
             decision and each one's rigid-motion label (T,) (0 the static scene, 1..k the moving
@@ -70,6 +71,7 @@ class ViewSet:
     tracks: Tracks | None = None
     rejections: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
     rejected_per_view: list[int] = field(default_factory=list)
+    descriptors: list[Tensor] | None = None
     all_tracks: Tracks | None = None
     track_labels: Tensor | None = None
     reconstruction: Reconstruction | None = None
@@ -173,7 +175,9 @@ class MapIncrementally(ConfiguredStage):
 
 
 def default_pipeline(config: Config | None = None) -> Pipeline:
-    """The stages of :func:`torchsfm.reconstruct`."""
+    """The stages of :func:`torchsfm.reconstruct` (SIFT's two first with ``pairs.matcher`` ``sift``)."""
     config = config or Config()
-    return Pipeline(DetectCorners(config.harris), MatchPairs(config), VerifyPairs(config), SelfCalibrate(config),
-                    BuildTracks(), RejectMovingObjects(config), MapIncrementally(config))
+    features = ((DetectSiftFeatures(config), MatchSiftFeatures(config)) if config.pairs.matcher == "sift"
+                else (DetectCorners(config.harris), MatchPairs(config)))
+    return Pipeline(*features, VerifyPairs(config), SelfCalibrate(config), BuildTracks(), RejectMovingObjects(config),
+                    MapIncrementally(config))

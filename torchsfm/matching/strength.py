@@ -12,7 +12,10 @@ with the symmetry fix of §3.2.2.2.1, made exact: a neighbour pair (k, l) counts
 k's best and k is l's best. (The thesis keeps, among the k whose best is the same l, the largest;
 that removes the double counting but is not symmetric when a dropped k has another partner — the
 mutual-best rule gives the same SM whichever image comes first, which is what the fix is for, and
-agrees with the thesis' rule whenever the best partners are unique.) All candidate pairs are evaluated as dense tensors, a block of rows at a time.
+agrees with the thesis' rule whenever the best partners are unique.) Candidate pairs are evaluated
+as dense tensors, a block of spatially nearby rows at a time against the candidates in the
+surrounding tiles (one neighbourhood radius wide), so the cost grows with the candidates' local
+density, not with their number squared.
 Relaxation then accepts matches iteratively: winner-take-all accepts every candidate that is the
 best of both its points; some-winners-take-all (default) accepts only those in the top α of both
 the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10).
@@ -45,22 +48,37 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     M, N1, N2 = i.numel(), points1.shape[0], points2.shape[0]
     distances1, distances2 = torch.cdist(points1, points1), torch.cdist(points2, points2)
     strength = torch.zeros(M, dtype=points1.dtype, device=points1.device)
+    if M == 0:
+        return strength
+    # rows in blocks of nearby candidates; a block's columns are the candidates in its tiles and
+    # the tiles around them (tiles one radius wide: every neighbour lies there), not all M
+    tile = torch.div(points1[i] - points1[i].amin(0), config.neighbourhood_radius, rounding_mode="floor").long()  # (M, 2)
+    columns_count = int(tile[:, 0].max()) + 1
+    tile_id = tile[:, 1] * columns_count + tile[:, 0]
+    order = torch.argsort(tile_id, stable=True)
+    grid_shape = (int(tile[:, 1].max()) + 3, columns_count + 2)  # one tile of margin on each side
     for start in range(0, M, _ROW_BLOCK):
-        rows = slice(start, min(start + _ROW_BLOCK, M))
-        d1 = distances1[i[rows]][:, i]  # (R, M): d(m1i, n1k) for every neighbour candidate (k, l)
-        d2 = distances2[j[rows]][:, j]  # (R, M): d(m2j, n2l)
+        rows = order[start:start + _ROW_BLOCK]
+        near = torch.zeros(grid_shape, dtype=torch.bool, device=points1.device)
+        for dy in (0, 1, 2):
+            for dx in (0, 1, 2):
+                near[tile[rows, 1] + dy, tile[rows, 0] + dx] = True
+        cols = torch.nonzero(near[tile[:, 1] + 1, tile[:, 0] + 1]).flatten()
+        ci, cj = i[cols], j[cols]
+        d1 = distances1[i[rows]][:, ci]  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
+        d2 = distances2[j[rows]][:, cj]  # (R, C): d(m2j, n2l)
         neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
-                     & (i[rows, None] != i[None]) & (j[rows, None] != j[None]))
+                     & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))
         dist = 0.5 * (d1 + d2)
         r = (d1 - d2).abs() / dist.clamp_min(1e-12)
         gain = torch.where(neighbour & (r < config.relative_distance_threshold),
                            torch.exp(-r / config.relative_distance_threshold), 0.0)
-        value = c[None] * gain / (1 + dist)  # (R, M), 0 where (k, l) does not support (i, j)
-        R = value.shape[0]
-        best_of_k = value.new_zeros(R, N1).scatter_reduce(1, i.expand(R, M), value, "amax")
-        best_of_l = value.new_zeros(R, N2).scatter_reduce(1, j.expand(R, M), value, "amax")
-        counted = ((value > 0) & (value == best_of_k.gather(1, i.expand(R, M)))
-                   & (value == best_of_l.gather(1, j.expand(R, M))))  # mutual best: the symmetry fix
+        value = c[cols][None] * gain / (1 + dist)  # (R, C), 0 where (k, l) does not support (i, j)
+        R, C = value.shape
+        best_of_k = value.new_zeros(R, N1).scatter_reduce(1, ci.expand(R, C), value, "amax")
+        best_of_l = value.new_zeros(R, N2).scatter_reduce(1, cj.expand(R, C), value, "amax")
+        counted = ((value > 0) & (value == best_of_k.gather(1, ci.expand(R, C)))
+                   & (value == best_of_l.gather(1, cj.expand(R, C))))  # mutual best: the symmetry fix
         strength[rows] = c[rows] * torch.where(counted, value, 0.0).sum(-1)
     return strength
 

@@ -31,7 +31,7 @@ from torch import Tensor
 from torchsfm.config import MatchingConfig
 from torchsfm.matching.ncc import CandidateMatches
 
-_ROW_BLOCK = 512
+_ROW_BLOCK = 256
 
 
 def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatches,

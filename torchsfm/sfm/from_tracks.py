@@ -20,8 +20,8 @@ from torch import Tensor
 
 from torchsfm.camera import check_intrinsics, to_homogeneous
 from torchsfm.config import Config
-from torchsfm.geometry.triangulation import triangulate_multiview
 from torchsfm.errors import InputError, NotEnoughDataError, TorchSfmError
+from torchsfm.geometry.triangulation import triangulate_multiview
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.reconstruction import MovingObject, Reconstruction
@@ -188,8 +188,9 @@ class ReconstructObjects(ConfiguredStage):
         for _ in range(MAX_REMAPS):
             testable, static = consistent_with_scene(pixels, visible, state.K, state.reconstruction,
                                                      self.config.reconstruction.max_reprojection_error)
-            merged = [label for label in range(1, int(labels.max()) + 1)
-                      if int((testable & (labels == label)).sum()) and 2 * int((static & (labels == label)).sum()) > int((testable & (labels == label)).sum())]
+            size = int(labels.max()) + 2  # counts per label + 1 (label -1 first)
+            tested, explained = (torch.bincount(labels[mask] + 1, minlength=size) for mask in (testable, static))
+            merged = [label for label in range(1, size - 1) if 2 * int(explained[label + 1]) > int(tested[label + 1]) > 0]
             joining = ((labels == -1) & static) | torch.isin(labels, torch.tensor(merged, dtype=torch.long))
             if not bool(joining.any()):
                 break

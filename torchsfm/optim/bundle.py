@@ -309,7 +309,7 @@ class _SchurLinearization:
         L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
         if int(info) != 0:
             return torch.zeros_like(rhs), torch.tensor(False)
-        columns = rhs.reshape(C * dc, -1)  # (C dc) x 1, or 5 with the intrinsics' border
+        columns = rhs.reshape(C * dc, -1)  # (C dc) x 1, or 1 + m with the intrinsics' border
         return torch.cholesky_solve(columns, L).reshape(rhs.shape), torch.tensor(True, device=U.device)
 
     def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:

@@ -3,7 +3,8 @@
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines); the
 KITTI odometry 06 excerpt (51 frames, forward motion); and, where ``--no-K`` is given, the same
-without the intrinsics. For each: views registered, camera errors after a similarity alignment to
+without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
+``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
 maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping).
@@ -70,7 +71,10 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
     seconds = time.perf_counter() - start
     index = model.view_indices
     focal = "" if with_K else f", focal {float(model.cameras.K[0, 0, 0]):.1f} (true {float(sequence.K[0, 0, 0]):.1f})"
-    return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}, {seconds:.1f} s"
+    bodies = "" if not config.moving_objects.reconstruct_objects else ", moving bodies: " + (", ".join(
+        f"{body.label} ({body.num_tracks} tracks, " + (f"{body.model.num_views} views)" if body.model else "no model)")
+        for body in model.objects) or "none")
+    return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}, {seconds:.1f} s"
 
 
 def run_pycolmap(sequence: StrechaSequence, workdir: Path) -> str:

@@ -156,6 +156,18 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
     }
 
 
+def _with_placed_bodies(model: Reconstruction) -> tuple[Tensor, Tensor]:
+    """The model's points and colours, then every moving body's that can be placed in it
+    (:meth:`~torchsfm.reconstruction.MovingObject.placed_in_scene`), in the body's colour."""
+    points, colours = [model.points3d], [model.colors]
+    for body in model.objects:
+        placement = body.placed_in_scene(model) if body.model is not None else None
+        if placement is not None:
+            points.append(placement[0])
+            colours.append(body.model.colors)
+    return torch.cat(points), torch.cat(colours)
+
+
 def _steady(body: MovingObject, scene: Reconstruction) -> dict | None:
     """A body's scale and path by the steady-motion prior, JSON-ready (None where undetermined)."""
     steady = body.steady_trajectory(scene)
@@ -169,7 +181,8 @@ def reconstruction_files(model: Reconstruction, summary: dict, frame: Tensor | N
     """The files of a multi-view model, by path under the output folder: ``summary.json``, the
     model's ``model.wrl``, ``points.ply`` and ``colmap/*.txt``, and the same for each of its
     ``other_models`` under ``other_models/k/`` (k from 1) and each moving body's model under
-    ``objects/label/`` (its points in the body's colour); with ``segmented_tracks``,
+    ``objects/label/`` (its points in the body's colour; the scene's PLY and VRML show each body
+    the steady-motion prior places at its first view); with ``segmented_tracks``,
     ``segmentation.png``: the tracks coloured by motion over ``frame`` (an image; else white)."""
     files: dict[str, bytes | str | Tensor] = {"summary.json": json.dumps(summary, indent=2) + "\n"}
     if model.segmented_tracks is not None:
@@ -179,7 +192,8 @@ def reconstruction_files(model: Reconstruction, summary: dict, frame: Tensor | N
     parts = ([("", model)] + [(f"other_models/{k}/", other) for k, other in enumerate(model.other_models, start=1)]
              + [(f"objects/{body.label}/", body.model) for body in model.objects if body.model is not None])
     for folder, part in parts:
-        files.update({f"{folder}model.wrl": vrml_text(part), f"{folder}points.ply": ply_bytes(part.points3d, part.colors)})
+        points, colours = _with_placed_bodies(part)
+        files.update({f"{folder}model.wrl": vrml_text(part), f"{folder}points.ply": ply_bytes(points, colours)})
         files.update({f"{folder}colmap/{name}": text for name, text in colmap_text(part).items()})
     return files
 

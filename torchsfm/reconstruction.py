@@ -135,6 +135,17 @@ class MovingObject:
         positions = (R_scene.transpose(1, 2) @ (scale * t_body - t_scene)[..., None])[..., 0]
         return views, rotations, positions
 
+    def placed_in_scene(self, scene: Reconstruction) -> tuple[Tensor, Tensor, float] | None:
+        """The body's points in the scene's frame at its first shared view, scaled by
+        :meth:`steady_trajectory`, and that point's path: ((P, 3) points, (n, 3) path, scale), or
+        None where the steady-motion scale is undetermined."""
+        steady = self.steady_trajectory(scene)
+        if steady is None:
+            return None
+        scale, _, path = steady
+        _, rotations, positions = self.poses_in_scene(scene, scale)
+        return (scale * self.model.points3d) @ rotations[0].T + positions[0], path, scale
+
     def steady_trajectory(self, scene: Reconstruction) -> tuple[float, list[int], Tensor] | None:
         """The scale (scene units per model unit) under which some point of the body moves with the
         least acceleration through the scene over evenly spaced views, and that point's path: (s,

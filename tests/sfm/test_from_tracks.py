@@ -8,6 +8,8 @@ from torch.testing import assert_close
 from torchsfm.config import Config
 from torchsfm.errors import NotEnoughDataError, ShapeError
 from torchsfm.evaluation import camera_errors, similarity_alignment
+from torchsfm.actions import reconstruction_files
+from torchsfm.io.ply import ply_bytes
 from torchsfm.io.vrml import vrml_text
 from torchsfm.reconstruction import MovingObject
 from torchsfm.sfm.from_tracks import ReconstructObjects, frame_pairs, reconstruct_motions, reconstruct_tracks
@@ -131,3 +133,6 @@ def test_a_steadily_moving_body_gets_its_scale_and_path_in_the_scene():
     assert MovingObject(3, 10).steady_trajectory(static) is None  # no model
     text = vrml_text(static)  # each body placed in the scene with its path
     assert text.count("# moving body") == 2 and text.count("coordIndex [ 0 1 2 3 4 -1 ]") == 2
+    scene_only = ply_bytes(static.points3d, static.colors)  # the scene's PLY holds the bodies' points too: 15 bytes each
+    body_points = sum(body.model.num_points for body in static.objects)
+    assert len(reconstruction_files(static, {})["points.ply"]) - len(scene_only) - 15 * body_points in range(0, 8)

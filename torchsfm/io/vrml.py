@@ -50,12 +50,10 @@ def vrml_text(model: Reconstruction, camera_size: float | None = None) -> str:
         lines += [f"      {x:.6g} {y:.6g} {z:.6g}," for x, y, z in pyramid.tolist()]
         lines += ["    ] }", "    coordIndex [ 0 1 -1 0 2 -1 0 3 -1 0 4 -1 1 2 3 4 1 -1 ]", "  }", "}"]
     for body in model.objects:
-        steady = body.steady_trajectory(model) if body.model is not None else None
-        if steady is None:
+        placement = body.placed_in_scene(model) if body.model is not None else None
+        if placement is None:
             continue
-        scale, _, path = steady
-        _, rotations, positions = body.poses_in_scene(model, scale)
-        placed = (scale * body.model.points3d) @ rotations[0].T + positions[0]
+        placed, path, scale = placement
         r, g, b = (channel / 255 for channel in body.model.colors[0].tolist())
         lines += [f"# moving body {body.label}: its points at its first view, the path of its steadiest point (scale {scale:.6g} by the steady-motion prior)",
                   "Shape {", "  geometry PointSet {", "    coord Coordinate { point ["]

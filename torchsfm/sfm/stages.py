@@ -48,7 +48,8 @@ class ViewSet:
             every image's EXIF records, if they agree (the estimate's start, refined later).
         generator: the random source of every RANSAC; report: progress messages.
         greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
-            the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``); putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
+            the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``);
+            putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
             tracks; rejections, rejected_per_view: the moving-object decision; all_tracks,
             track_labels: with ``moving_objects.reconstruct_objects``, the tracks before the
             decision and each one's rigid-motion label (T,) (0 the static scene, 1..k the moving

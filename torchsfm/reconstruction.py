@@ -122,8 +122,15 @@ class MovingObject:
         (view indices, (n, 3, 3) world-from-body rotations, (n, 3) positions of the body's origin),
         its translations multiplied by ``scale`` (the body's size in scene units per model unit).
         The rotations do not depend on the scale."""
+        views, rotations, origins, per_scale = self._in_scene(scene)
+        return views, rotations, origins + scale * per_scale
+
+    def _in_scene(self, scene: Reconstruction) -> tuple[list[int], Tensor, Tensor, Tensor]:
+        """Views both models registered, world-from-body rotations (n, 3, 3), and the body
+        origin's positions (n, 3) at scale 0 and their change per unit of scale."""
         if self.model is None:
-            return [], torch.empty(0, 3, 3, dtype=torch.float64), torch.empty(0, 3, dtype=torch.float64)
+            empty = torch.empty(0, 3, dtype=torch.float64)
+            return [], torch.empty(0, 3, 3, dtype=torch.float64), empty, empty
         in_scene = {v: k for k, v in enumerate(scene.view_indices)}
         pairs = [(v, in_scene[v], k) for k, v in enumerate(self.model.view_indices) if v in in_scene]
         views = [v for v, _, _ in pairs]
@@ -131,9 +138,8 @@ class MovingObject:
         body_camera = torch.tensor([b for _, _, b in pairs], dtype=torch.long)
         R_scene, t_scene = scene.cameras.R[scene_camera], scene.cameras.t[scene_camera]  # camera from world
         R_body, t_body = self.model.cameras.R[body_camera], self.model.cameras.t[body_camera]  # camera from body
-        rotations = R_scene.transpose(1, 2) @ R_body
-        positions = (R_scene.transpose(1, 2) @ (scale * t_body - t_scene)[..., None])[..., 0]
-        return views, rotations, positions
+        to_world = R_scene.transpose(1, 2)
+        return views, to_world @ R_body, -(to_world @ t_scene[..., None])[..., 0], (to_world @ t_body[..., None])[..., 0]
 
     def placed_in_scene(self, scene: Reconstruction) -> tuple[Tensor, Tensor, float] | None:
         """The body's points in the scene's frame at its first shared view, scaled by
@@ -159,11 +165,9 @@ class MovingObject:
         along its axis, which does not touch s). None when fewer than two such triples are shared,
         when s is not determined (e.g. the camera and the body both moving steadily: every scale
         is as smooth) or when s ≤ 0."""
-        views, rotations, positions = self.poses_in_scene(scene, 1.0)
+        views, rotations, origins, per_scale = self._in_scene(scene)
         if len(views) < 4:
             return None
-        _, _, origins = self.poses_in_scene(scene, 0.0)
-        per_scale = positions - origins
         index = torch.tensor(views)
         even = torch.nonzero(index[2:] - index[1:-1] == index[1:-1] - index[:-2]).flatten()
         if even.numel() < 2:

@@ -54,17 +54,6 @@ def triangulate_linear_eigen(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> 
     return _null_vector(_linear_system(x1, x2, P1, P2))
 
 
-def triangulate_multiview(x: Tensor, visible: Tensor, P: Tensor) -> Tensor:
-    """Linear-eigen triangulation of N points from the views that see them: x (V, N, 2) image
-    points (normalized coordinates give the best-conditioned system), visible (V, N) bool, P
-    (V, 3, 4) cameras -> (N, 4) homogeneous points, unit X minimizing Σ over seeing views of
-    eq. 3.5.8's residuals (the smallest eigenvector of the 4×4 Σ AᵀA of every point at once)."""
-    rows = x[..., :, None] * P[:, None, 2:3, :] - P[:, None, :2, :]  # (V, N, 2, 4)
-    rows = rows * visible[..., None, None]
-    normal = torch.einsum("vnri,vnrj->nij", rows, rows)  # (N, 4, 4)
-    return torch.linalg.eigh(normal).eigenvectors[..., 0]
-
-
 def triangulate_linear_ls(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tensor:
     """Linear least-squares method (fourth coordinate fixed to 1): -> (*, N, 4)."""
     return _least_squares_point(_linear_system(x1, x2, P1, P2))

@@ -119,7 +119,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         raise NotEnoughDataError(f"only {int(judged.sum())} tracks are seen in {config.min_frames} frames (needs {MIN_VECTORS})")
     index = torch.nonzero(judged)[:, 0]
     left_out = index[:0]
-    if index.numel() > config.max_tracks:  # cluster a seeded subset; the others take their neighbours' label
+    if index.numel() > config.max_tracks:  # cluster a seeded subset; the others go to the motion that fits them
         chosen = torch.zeros(index.numel(), dtype=torch.bool, device=index.device)
         chosen[torch.randperm(index.numel(), generator=generator, device=generator.device)[:config.max_tracks].to(index.device)] = True
         index, left_out = index[chosen], index[~chosen]

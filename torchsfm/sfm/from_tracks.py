@@ -21,7 +21,7 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, to_homogeneous
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, TorchSfmError
-from torchsfm.geometry.triangulation import triangulate_multiview
+from torchsfm.geometry.projective import triangulate_multiview
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.reconstruction import MovingObject, Reconstruction
@@ -159,7 +159,7 @@ def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Rec
     R[views], t[views], registered[views] = scene.cameras.R, scene.cameras.t, True
     seen = visible & registered[:, None]
     normalized = (torch.linalg.inv(K)[:, None] @ to_homogeneous(pixels)[..., None])[..., :2, 0]  # (V, N, 2)
-    X = triangulate_multiview(normalized, seen, torch.cat([R, t[..., None]], dim=-1))  # (N, 4)
+    X = triangulate_multiview(torch.cat([R, t[..., None]], dim=-1), normalized, seen.double(), iterations=0)  # (N, 4) linear
     camera_points = (R[:, None] @ X[None, :, :3, None])[..., 0] + t[:, None] * X[None, :, 3:]  # (V, N, 3) up to X's scale
     depth_sign = torch.sign(camera_points[..., 2] * X[None, :, 3].sign())
     projected = (K[:, None] @ camera_points[..., None])[..., 0]

@@ -215,8 +215,8 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     size = 2 * float(model.K[0, :2, 2].max()) + 1
     bundle(model, config, fixed_view, intrinsics=tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name))
     before, after = start[0][0], model.K[0]
-    focal_change = float(torch.maximum(after[0, 0] / before[0, 0], after[1, 1] / before[1, 1]).maximum(
-        torch.maximum(before[0, 0] / after[0, 0], before[1, 1] / after[1, 1])))
+    ratios = torch.diagonal(after)[:2] / torch.diagonal(before)[:2]  # fx, fy after / before
+    focal_change = float(torch.maximum(ratios, 1 / ratios).max())
     shift = float((after[:2, 2] - before[:2, 2]).norm())
     if math.isfinite(focal_change) and focal_change <= MAX_FOCAL_CHANGE and shift <= MAX_PRINCIPAL_POINT_SHIFT * size:
         return f"intrinsics refined by bundle adjustment: fx {float(after[0, 0]):.1f}, fy {float(after[1, 1]):.1f}, " \

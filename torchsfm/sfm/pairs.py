@@ -106,6 +106,16 @@ def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> 
     return sorted(chosen)
 
 
+def pairs_to_match(greys: Tensor, config: PairsConfig, features: CoarseFeatures | None = None) -> list[tuple[int, int]]:
+    """The view pairs (i < j) of (V, 1, H, W) grey images to match: :func:`select_pairs` on the
+    coarse scores, which only the ``auto`` and ``similarity`` modes compute (from ``features`` if
+    given, else from the images)."""
+    scores = None
+    if config.mode not in ("sequential", "exhaustive"):
+        scores = pair_scores(features if features is not None else coarse_features(greys, config), config.ncc_threshold)
+    return select_pairs(scores, config, greys.shape[0])
+
+
 def predicted_homography(features: CoarseFeatures, i: int, j: int, config: PairsConfig,
                          generator: torch.Generator | None = None) -> Tensor | None:
     """The homography (3, 3) mapping view i's pixels to view j's, fitted by RANSAC to the coarse

@@ -14,7 +14,7 @@ from kornia.feature import SIFTFeature, get_laf_center, match_smnn
 
 from torchsfm.camera import undistort_points
 from torchsfm.images import to_grey_bytes, to_unit_float
-from torchsfm.sfm.pairs import coarse_features, pair_scores, select_pairs
+from torchsfm.sfm.pairs import pairs_to_match
 from torchsfm.sfm.pipeline import ConfiguredStage
 
 if TYPE_CHECKING:  # the state type only: stages.py builds its default pipeline from these stages
@@ -46,10 +46,8 @@ class MatchSiftFeatures(ConfiguredStage):
 
     def forward(self, state: ViewSet) -> ViewSet:
         config = self.config
-        scores = None if config.pairs.mode in ("sequential", "exhaustive") else pair_scores(
-            coarse_features(state.greys, config.pairs), config.pairs.ncc_threshold)
         state.putative = {}
-        for i, j in select_pairs(scores, config.pairs, len(state.descriptors)):
+        for i, j in pairs_to_match(state.greys, config.pairs):
             state.report(f"matching views {i} and {j}")
             _, index = match_smnn(state.descriptors[i], state.descriptors[j], config.pairs.sift_ratio)
             if index.shape[0] >= config.reconstruction.min_pair_inliers:

@@ -23,7 +23,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
-from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
+from torchsfm.sfm.pairs import coarse_features, pairs_to_match, predicted_homography
 from torchsfm.sfm.tracks import Tracks
 
 Progress = Callable[[str], None]
@@ -59,8 +59,7 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs)."""
     features = coarse_features(greys, config.pairs)
-    scores = None if config.pairs.mode in ("sequential", "exhaustive") else pair_scores(features, config.pairs.ncc_threshold)
-    pairs = select_pairs(scores, config.pairs, greys.shape[0])
+    pairs = pairs_to_match(greys, config.pairs, features)
     putative = {}
     for i, j in pairs:
         report(f"matching views {i} and {j}")

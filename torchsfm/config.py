@@ -518,7 +518,11 @@ class SegmentationConfig:
     ``min_link_drop``). Tracks seen in fewer than ``min_frames`` frames are left unassigned.
     More than ``max_tracks`` tracks (the affinity is N × N): a seeded subset of that many is
     clustered and every other track goes to the motion whose fundamental matrices explain it
-    best, within 3× that motion's median residual (else it is left unassigned).
+    best, within 3× that motion's median residual (else it is left unassigned). When the number
+    of motions is found (not given), pieces of the static scene that the scene's rigid motion
+    does not explain are cut out as moving bodies: a piece goes when more than half its tracks
+    lie beyond the larger of ``scene_tolerance`` px (the tracker's noise floor) and the χ² bound
+    at ``scene_significance`` (:func:`torchsfm.moving.segmentation.cut_from_scene`).
     """
 
     hypotheses: int = 2000
@@ -540,6 +544,8 @@ class SegmentationConfig:
     kmeans_iterations: int = 30
     min_frames: int = 3
     max_tracks: int = 3000
+    scene_tolerance: float = 1.0
+    scene_significance: float = 1e-3
 
     @property
     def model_kinds(self) -> list[str]:
@@ -549,6 +555,8 @@ class SegmentationConfig:
     def __post_init__(self) -> None:
         _require(self.hypotheses >= 10, "hypotheses", self.hypotheses, "must be >= 10")
         _require(self.max_tracks >= 100, "max_tracks", self.max_tracks, "must be >= 100")
+        _require(self.scene_tolerance > 0, "scene_tolerance", self.scene_tolerance, "must be > 0")
+        _require(0 < self.scene_significance < 1, "scene_significance", self.scene_significance, "must lie in (0, 1)")
         _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine", "homography"}, "models",
                  self.models, "a comma-separated list of fundamental, affine, homography")
         _require(self.sample_frames >= 2, "sample_frames", self.sample_frames, "must be >= 2")

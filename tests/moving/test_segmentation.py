@@ -134,8 +134,10 @@ def test_hopkins155_subset_misclassification():
 def test_adelaidermf_two_views_with_outliers():
     """Two views, several independently moved objects, 35-43 % false matches: the reader's
     conventions, and misclassification (outliers must come out unassigned) with the number of
-    structures found: measured 13.5 / 9.3 / 31.4 % (biscuitbookbox / breadcartoychips /
-    dinobooks, seed 0), bound 20 % on the mean; OpenCV's sequential RANSAC: 28 / 35 / 20 %."""
+    structures found (within one: an outlier-rich piece of structure 0 may be cut out as a body):
+    measured 0.8 / 13.1 / 24.4 % (biscuitbookbox / breadcartoychips / dinobooks, seed 0; 13.5 /
+    9.3 / 31.4 % before pieces were cut from structure 0), bound 16 % on the mean; OpenCV's
+    sequential RANSAC: 28 / 35 / 20 %."""
     pytest.importorskip("scipy")
     from torchsfm.io.datasets import read_adelaidermf
 
@@ -144,9 +146,9 @@ def test_adelaidermf_two_views_with_outliers():
         scene = read_adelaidermf(DATA / "adelaidermf_F" / f"{name}.mat")
         assert scene.tracks.shape[0] == 2 and scene.has_outliers and int(scene.labels.min()) == -1
         result = segment_motions(scene.tracks, generator=torch.Generator().manual_seed(0))
-        assert result.num_motions == int(scene.labels.max()) + 1
+        assert abs(result.num_motions - (int(scene.labels.max()) + 1)) <= 1
         errors.append(misclassification(result.labels, scene.labels))
-    assert sum(errors) / len(errors) <= 0.20, errors
+    assert sum(errors) / len(errors) <= 0.16, errors
 
 
 def test_segmentation_figure_colours_each_motion():

@@ -54,6 +54,7 @@ from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, samp
 from torchsfm.geometry.homography import transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
+from torchsfm.moving.static_tracks import chi2_quantile
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.robust.samplers import resolve_generator
 
@@ -79,6 +80,9 @@ class MotionSegmentation:
         eigenvalues: (pieces,) leading eigenvalues of the normalized affinity.
         affinity: (n, n) the sparsified symmetric affinity the clustering used, over the
             ``clustered`` (n,) tracks (input indices).
+        pieces: (N,) int64 the piece of the over-segmentation (spectral k-means, before the
+            merges) each clustered track fell in, -1 for the others; every motion is a union of
+            pieces.
     """
 
     labels: Tensor
@@ -89,6 +93,7 @@ class MotionSegmentation:
     eigenvalues: Tensor
     affinity: Tensor
     clustered: Tensor
+    pieces: Tensor
 
 
 def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: SegmentationConfig | None = None,
@@ -139,26 +144,88 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
     embedding = vectors[:, :pieces]
     embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
-    found = merge_clusters(affinity, kmeans(embedding, pieces, config.restarts, config.kmeans_iterations, generator),
-                           num_motions, config)
-    num_motions = int(found.max()) + 1
+    cut = kmeans(embedding, pieces, config.restarts, config.kmeans_iterations, generator)
+    found = merge_clusters(affinity, cut, num_motions, config)
     N = tracks.shape[1]
+    piece_of = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
+    piece_of[index] = cut
     clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
     clusters[index] = found
-    coverage = grid_coverage(tracks, visible, clusters, num_motions)
-    sizes = torch.bincount(found, minlength=num_motions)
-    static = int((coverage * (N + 1) + sizes).argmax())  # most coverage, then most tracks
-    order = torch.tensor([static, *(c for c in range(num_motions) if c != static)], device=tracks.device)  # merges: largest first
-    relabel = torch.empty_like(order)
-    relabel[order] = torch.arange(num_motions, device=tracks.device)
-    labels = torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
+    labels = scene_first(tracks, visible, clusters)
+    if num_motions is None:
+        labels = cut_from_scene(tracks, visible, labels, piece_of, affinity, index, config)
+    num_motions = int(labels.max()) + 1
+    assigned = labels[index]
+    sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
     if left_out.numel():
         labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
     residuals = motion_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))
-    return MotionSegmentation(labels=labels, num_motions=num_motions,
-                              sizes=sizes[order], coverage=coverage[order], residuals=residuals,
-                              eigenvalues=eigenvalues, affinity=affinity, clustered=index)
+    return MotionSegmentation(labels=labels, num_motions=num_motions, sizes=sizes,
+                              coverage=grid_coverage(tracks, visible, labels, num_motions), residuals=residuals,
+                              eigenvalues=eigenvalues, affinity=affinity, clustered=index, pieces=piece_of)
+
+
+def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor) -> Tensor:
+    """(N,) cluster labels 0..C-1 (largest first; -1 none) relabelled so that the static scene
+    — the cluster covering most grid cells over all frames, ties to the most tracks — is 0."""
+    count = int(clusters.max()) + 1
+    coverage = grid_coverage(tracks, visible, clusters, count)
+    sizes = torch.bincount(clusters[clusters >= 0], minlength=count)
+    static = int((coverage * (clusters.numel() + 1) + sizes).argmax())
+    order = torch.tensor([static, *(c for c in range(count) if c != static)], device=clusters.device)
+    relabel = torch.empty_like(order)
+    relabel[order] = torch.arange(count, device=clusters.device)
+    return torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
+
+
+def cut_from_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
+                   clustered: Tensor, config: SegmentationConfig) -> Tensor:
+    """Cut out of the static scene (label 0) the pieces its rigid motion does not explain.
+
+    The preference clustering may merge a body into the scene when their epipolar geometry
+    nearly agrees over the sampled frames (a car driving along the camera's direction). The
+    scene's motion — one F per frame pair (:func:`frame_pairs`, every start), a
+    least-trimmed-squares fit to all its tracks (:func:`track_residuals`) — gives every scene
+    track its RMS Sampson distance; a track is inconsistent beyond the larger of
+    ``config.scene_tolerance`` (the tracker's noise floor) and σ·sqrt(χ²_(1−α)(m) / m) (σ the
+    scene's median RMS, m the pairs the track is seen in, α = ``config.scene_significance``). A
+    piece (:attr:`MotionSegmentation.pieces`) with more than half its tracks inconsistent is cut;
+    the cut pieces are merged into bodies by :func:`merge_clusters` over their own links and
+    labelled after the existing ones — those a rigid motion of their own explains (median RMS
+    Sampson distance within that floor, :func:`motion_residuals`); the others are outliers (-1).
+    Nothing is cut when fewer than 12 scene tracks would remain.
+
+    Args:
+        tracks: (F, N, 2) pixels; visible: (F, N) bool.
+        labels: (N,) int64, 0 the scene; pieces: (N,) int64 piece of each clustered track.
+        affinity: (n, n) over the ``clustered`` (n,) tracks.
+
+    Returns:
+        (N,) int64 labels.
+    """
+    scene = labels == 0
+    pairs = frame_pairs(tracks.shape[0], tracks.shape[0])
+    rms, judged = track_residuals(tracks, visible, scene[None], pairs)
+    rms = torch.where(judged[0], rms[0], torch.nan)
+    pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
+    sigma = rms[scene].nanmedian()
+    bound = (sigma.square() * chi2_quantile(pairs_seen, 1 - config.scene_significance) / pairs_seen).sqrt()
+    excess = rms / bound.clamp_min(config.scene_tolerance)
+    scene_pieces = pieces[scene].unique()
+    inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
+    cut = scene & torch.isin(pieces, scene_pieces[inconsistent])
+    if not bool(cut.any()) or int((scene & ~cut).sum()) < MIN_VECTORS:
+        return labels
+    position = torch.nonzero(cut[clustered])[:, 0]
+    _, piece_index = pieces[clustered[position]].unique(return_inverse=True)
+    bodies = merge_clusters(affinity[position][:, position], piece_index, None, config)
+    members = torch.zeros(int(bodies.max()) + 1, labels.numel(), dtype=torch.bool, device=labels.device)
+    members[bodies, clustered[position]] = True
+    rigid = motion_residuals(tracks, visible, members, pairs) <= max(config.scene_tolerance, float(bound.median()))
+    labels = labels.clone()
+    labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + 1 + rigid.cumsum(0)[bodies] - 1, -1)
+    return labels
 
 
 def label_by_residual(tracks: Tensor, visible: Tensor, labels: Tensor, queries: Tensor, num_motions: int) -> Tensor:

@@ -13,8 +13,8 @@ Methods (undetected = % of moving tracks kept, wrong = % of background tracks re
 * whole tracks, :func:`torchsfm.reject_moving_objects_in_tracks` with ``track_method`` =
   ``triplets`` (votes of IMOR + RANSAC over every triplet (0, k, 2k)), ``rigid_groups``
   (projective rigid groups over all frames, static group chosen by the votes), ``both`` and
-  ``segmentation`` (every rigid motion segmented by :func:`torchsfm.segment_motions`, its static
-  scene kept).
+  ``segmentation`` (the default: every rigid motion segmented by :func:`torchsfm.segment_motions`,
+  the static scene then made what its rigid motion explains, and kept).
 
 Single-triplet methods are scored on the tracks seen in the triplet; whole-track methods on all
 tracks, an untested track counting as rejected. Pooled figures per data set at the end, and the

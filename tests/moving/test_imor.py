@@ -148,9 +148,10 @@ def test_hopkins155_votes_over_triplets(shared_data):
     """Votes over every triplet (0, k, 2k) of the four sequences: <= 5% of the moving tracks kept,
     <= 5% of the static ones rejected (pooled)."""
     undetected = wrong = moving = static = 0
+    config = with_overrides(Config(), ["moving_objects.track_method=triplets"])
     for name in ("cars1", "truck1", "kanatani1", "1R2RC"):
         sequence = read_hopkins155(shared_data / "hopkins155_subset" / name)
-        result = reject_moving_objects_in_tracks(sequence.tracks, generator=torch.Generator().manual_seed(0))
+        result = reject_moving_objects_in_tracks(sequence.tracks, config=config, generator=torch.Generator().manual_seed(0))
         figures = rejection_figures(result.background_mask, sequence.labels)
         undetected, wrong = undetected + figures["undetected"], wrong + figures["wrong_rejections"]
         moving, static = moving + int((sequence.labels != 0).sum()), static + int((sequence.labels == 0).sum())

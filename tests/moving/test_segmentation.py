@@ -200,3 +200,17 @@ def test_more_tracks_than_max_tracks_cluster_a_subset_and_fit_the_rest_to_the_mo
     assert result.num_motions == 3 and 200 <= n <= 250 and result.affinity.shape == (n, n)
     assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
     assert float((result.labels[~inliers] == -1).double().mean()) >= 0.9
+
+
+def test_frame_pairs_are_as_wide_as_the_tracks_allow():
+    """A third of the sequence for full tracks; the median track span for short video tracks."""
+    from torchsfm.moving.segmentation import frame_pairs
+
+    full = torch.ones(10, 30, dtype=torch.bool)
+    assert frame_pairs(full).tolist() == [[f, f + 3] for f in range(7)]
+    assert frame_pairs(full, 3).tolist() == [[0, 3], [3, 6], [6, 9]]
+    short = torch.zeros(30, 40, dtype=torch.bool)
+    for track in range(40):  # every track seen in 3 consecutive frames: span 2
+        short[track % 28:track % 28 + 3, track] = True
+    pairs = frame_pairs(short)
+    assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28

@@ -153,14 +153,14 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     clusters[index] = found
     labels = scene_first(tracks, visible, clusters)
     if num_motions is None:
-        labels = cut_from_scene(tracks, visible, labels, piece_of, affinity, index, config)
+        labels = settle_scene(tracks, visible, labels, piece_of, affinity, index, config)
     num_motions = int(labels.max()) + 1
     assigned = labels[index]
     sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
     if left_out.numel():
         labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
-    residuals = motion_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))
+    residuals = motion_residuals(tracks, visible, members, frame_pairs(visible))
     return MotionSegmentation(labels=labels, num_motions=num_motions, sizes=sizes,
                               coverage=grid_coverage(tracks, visible, labels, num_motions), residuals=residuals,
                               eigenvalues=eigenvalues, affinity=affinity, clustered=index, pieces=piece_of)
@@ -179,39 +179,48 @@ def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor) -> Tensor:
     return torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
 
 
-def cut_from_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
-                   clustered: Tensor, config: SegmentationConfig) -> Tensor:
-    """Cut out of the static scene (label 0) the pieces its rigid motion does not explain.
+def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
+                 clustered: Tensor, config: SegmentationConfig) -> Tensor:
+    """Make the static scene (label 0) what its rigid motion explains: motions it explains join
+    it, pieces of it that it does not explain are cut out.
 
     The preference clustering may merge a body into the scene when their epipolar geometry
-    nearly agrees over the sampled frames (a car driving along the camera's direction). The
-    scene's motion — one F per frame pair (:func:`frame_pairs`, every start), a
-    least-trimmed-squares fit to all its tracks (:func:`track_residuals`) — gives every scene
-    track its RMS Sampson distance; a track is inconsistent beyond the larger of
-    ``config.scene_tolerance`` (the tracker's noise floor) and σ·sqrt(χ²_(1−α)(m) / m) (σ the
-    scene's median RMS, m the pairs the track is seen in, α = ``config.scene_significance``). A
-    piece (:attr:`MotionSegmentation.pieces`) with more than half its tracks inconsistent is cut;
-    the cut pieces are merged into bodies by :func:`merge_clusters` over their own links and
-    labelled after the existing ones — those a rigid motion of their own explains (median RMS
-    Sampson distance within that floor, :func:`motion_residuals`); the others are outliers (-1).
-    Nothing is cut when fewer than 12 scene tracks would remain.
+    nearly agrees over the sampled frames (a car driving along the camera's direction), and may
+    split a scene of several planes. The scene's motion — one F per frame pair
+    (:func:`frame_pairs`), a least-trimmed-squares fit to all its tracks
+    (:func:`track_residuals`) — gives every track its RMS Sampson distance; a track is
+    inconsistent beyond the larger of ``config.scene_tolerance`` (the tracker's noise floor) and
+    σ·sqrt(χ²_(1−α)(m) / m) (σ the scene's median RMS, m the pairs the track is seen in,
+    α = ``config.scene_significance``). A motion with at most half its tracks inconsistent joins
+    the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`) with more than half its
+    tracks inconsistent is cut. The cut pieces are merged into bodies by :func:`merge_clusters`
+    over their own links and labelled after the other motions — those a rigid motion of their
+    own explains (median RMS Sampson distance within the floor, :func:`motion_residuals`); the
+    others are outliers (-1). Nothing is cut when fewer than 12 scene tracks would remain.
 
     Args:
         tracks: (F, N, 2) pixels; visible: (F, N) bool.
-        labels: (N,) int64, 0 the scene; pieces: (N,) int64 piece of each clustered track.
-        affinity: (n, n) over the ``clustered`` (n,) tracks.
+        labels: (N,) int64, 0 the scene, 1..k the other motions, -1 none.
+        pieces: (N,) int64 piece of each clustered track; affinity: (n, n) over the
+            ``clustered`` (n,) tracks.
 
     Returns:
-        (N,) int64 labels.
+        (N,) int64 labels, the motions renumbered 0..k' in their order.
     """
     scene = labels == 0
-    pairs = frame_pairs(tracks.shape[0], tracks.shape[0])
+    pairs = frame_pairs(visible)
     rms, judged = track_residuals(tracks, visible, scene[None], pairs)
     rms = torch.where(judged[0], rms[0], torch.nan)
     pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
-    sigma = rms[scene].nanmedian()
-    bound = (sigma.square() * chi2_quantile(pairs_seen, 1 - config.scene_significance) / pairs_seen).sqrt()
-    excess = rms / bound.clamp_min(config.scene_tolerance)
+    floor = (rms[scene].nanmedian().square() * chi2_quantile(pairs_seen, 1 - config.scene_significance) / pairs_seen).sqrt()
+    floor = floor.clamp_min(config.scene_tolerance)
+    excess = rms / floor
+    labels = labels.clone()
+    for motion in range(1, int(labels.max()) + 1):
+        if excess[labels == motion].nanmedian() <= 1:
+            labels[labels == motion] = 0
+    _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
+    scene = labels == 0
     scene_pieces = pieces[scene].unique()
     inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
     cut = scene & torch.isin(pieces, scene_pieces[inconsistent])
@@ -222,9 +231,8 @@ def cut_from_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tens
     bodies = merge_clusters(affinity[position][:, position], piece_index, None, config)
     members = torch.zeros(int(bodies.max()) + 1, labels.numel(), dtype=torch.bool, device=labels.device)
     members[bodies, clustered[position]] = True
-    rigid = motion_residuals(tracks, visible, members, pairs) <= max(config.scene_tolerance, float(bound.median()))
-    labels = labels.clone()
-    labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + 1 + rigid.cumsum(0)[bodies] - 1, -1)
+    rigid = motion_residuals(tracks, visible, members, pairs) <= float(floor[cut].median())
+    labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
     return labels
 
 
@@ -234,7 +242,7 @@ def label_by_residual(tracks: Tensor, visible: Tensor, labels: Tensor, queries: 
     best, if within 3× that motion's median residual over its own tracks, else -1 (an outlier):
     (F, N, 2) tracks, (F, N) visibility, (N,) labels -> (M,) labels."""
     members = labels[None] == torch.arange(num_motions, device=labels.device)[:, None]
-    rms, judged = track_residuals(tracks, visible, members, frame_pairs(tracks.shape[0], 6))  # (C, N)
+    rms, judged = track_residuals(tracks, visible, members, frame_pairs(visible))  # (C, N)
     own = torch.where(judged & members, rms, torch.nan).nanmedian(-1).values  # (C,)
     candidate = torch.where(judged[:, queries] & (rms[:, queries] <= 3 * own[:, None]), rms[:, queries], torch.inf)
     best = candidate.min(0)
@@ -507,11 +515,18 @@ def grid_coverage(tracks: Tensor, visible: Tensor, labels: Tensor, count: int) -
     return occupied.sum(1)
 
 
-def frame_pairs(num_frames: int, count: int) -> Tensor:
-    """(P, 2) frame pairs (f, f + gap), gap = a third of the sequence (at least 1), their first
-    frames spread evenly: wide enough for parallax, short enough for tracks with gaps."""
-    gap = max(1, (num_frames - 1) // 3)
-    starts = torch.linspace(0, num_frames - 1 - gap, min(count, num_frames - gap)).round().long().unique()
+def frame_pairs(visible: Tensor, count: int | None = None) -> Tensor:
+    """(P, 2) frame pairs (f, f + gap) for (F, N) visibility: gap = a third of the sequence, at
+    most the median span (last frame − first frame) of the tracks seen twice, at least 1 — wide
+    enough for parallax, short enough that the tracks of a video are seen at both ends; the
+    first frames spread evenly, ``count`` of them (default: every possible one)."""
+    F = visible.shape[0]
+    frame = torch.arange(F, device=visible.device)[:, None]
+    first = torch.where(visible, frame, F).amin(0)
+    last = torch.where(visible, frame, -1).amax(0)
+    spans = (last - first)[visible.sum(0) >= 2]
+    gap = max(1, min((F - 1) // 3, int(spans.median()) if spans.numel() else 1))
+    starts = torch.linspace(0, F - 1 - gap, min(count or F, F - gap), device=visible.device).round().long().unique()
     return torch.stack([starts, starts + gap], 1)
 
 

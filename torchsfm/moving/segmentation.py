@@ -50,7 +50,7 @@ from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
-from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
+from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error, sampson_error_of_hypotheses
 from torchsfm.geometry.homography import transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
@@ -302,30 +302,38 @@ def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationC
     def fit(x1: Tensor, x2: Tensor) -> Tensor:
         return eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
 
-    return worst_over_pairs(tracks, visible, frames, sample, usable, fit, lambda F, x1, x2: sampson_error(F, x1, x2).sqrt())
+    return worst_over_pairs(tracks, visible, frames, sample, usable, fit,
+                            lambda F, x1, x2: sampson_error_of_hypotheses(F[None], x1[None], x2[None])[0].sqrt())
 
 
 def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Tensor, usable: Tensor,
                      fit: Callable[[Tensor, Tensor], Tensor], distance: Callable[[Tensor, Tensor, Tensor], Tensor]
                      ) -> tuple[Tensor, Tensor]:
     """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
-    (H, 3, 3) models, ``distance`` (model, (H, N, 2), (H, N, 2)) -> (H, N) pixels. Returns each
-    track's largest distance over the pairs in which it is seen (H, N), and where that is defined
-    (H, N): seen in a pair, a usable sample, a finite model, and not one of the sample's tracks."""
+    (H, 3, 3) models, ``distance`` (models (h, 3, 3), points (N, 2), (N, 2)) -> (h, N) pixels.
+    Returns each track's largest distance over the pairs in which it is seen (H, N), and where
+    that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
+    sample's tracks. The models of all hypotheses sharing a frame pair are scored together on
+    that pair's points (no per-hypothesis copy of the tracks)."""
     H, m = frames.shape
-    worst = torch.zeros(H, tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
+    N, F = tracks.shape[1], tracks.shape[0]
+    first, second = torch.triu_indices(m, m, 1, device=frames.device)
+    a, b = frames[:, first], frames[:, second]  # (H, P) frame pairs of every hypothesis
+    models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(a.shape[1])], 1)
+    worst = torch.zeros(H, N, dtype=tracks.dtype, device=tracks.device)
     pairs_seen = torch.zeros_like(worst, dtype=torch.long)
-    chunk = max(1, CHUNK_ELEMENTS // (2 * tracks.shape[1]))  # hypotheses at a time: (chunk, N, 2) points per frame
-    for i in range(m):
-        for j in range(i + 1, m):
-            for first in range(0, H, chunk):
-                rows = slice(first, first + chunk)
-                a, b = frames[rows, i], frames[rows, j]
-                model = fit(tracks[a[:, None], sample[rows]], tracks[b[:, None], sample[rows]])
-                residual = distance(model, tracks[a], tracks[b])
-                both = visible[a] & visible[b]
-                worst[rows] = torch.where(both, torch.maximum(worst[rows], residual), worst[rows])
-                pairs_seen[rows] += both
+    key = (a * F + b).reshape(-1)  # (H * P,), one hypothesis never holds a pair twice
+    order = key.argsort()
+    keys, counts = key[order].unique_consecutive(return_counts=True)
+    chunk = max(1, CHUNK_ELEMENTS // N)
+    for pair, rows in zip(keys.tolist(), order.split(counts.tolist())):
+        i, j = divmod(pair, F)
+        both = visible[i] & visible[j]
+        for part in rows.split(chunk):
+            h = part // a.shape[1]
+            residual = distance(models.reshape(-1, 3, 3)[part], tracks[i], tracks[j])
+            worst[h] = torch.where(both, torch.maximum(worst[h], residual), worst[h])
+            pairs_seen[h] += both
     defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
     return worst, defined.scatter(1, sample, False)
 
@@ -350,8 +358,8 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
         spans = trajectories.gather(1, sample[rows, 1:, None].expand(-1, -1, 2 * m)) - origin[:, None]  # (h, 3, 2m)
         basis, triangle = torch.linalg.qr(spans.transpose(1, 2))  # (h, 2m, 3)
         extent[rows] = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
-        offsets = trajectories - origin[:, None]
-        residual[rows] = (offsets - (offsets @ basis) @ basis.transpose(1, 2)).norm(dim=-1) / m ** 0.5
+        offsets = trajectories - origin[:, None]  # distance to the span: |o|² - |Bᵀo|² (B orthonormal)
+        residual[rows] = (offsets.square().sum(-1) - (offsets @ basis).square().sum(-1)).clamp_min(0).sqrt() / m ** 0.5
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]
     return residual, defined.scatter(1, sample, False)
@@ -361,11 +369,12 @@ def ordered_preferences(residuals: Tensor, defined: Tensor, config: Segmentation
     """(H, N) residuals -> (N, H) preferences, each track preferring the ``preference_share`` of
     its defined hypotheses with the smallest residuals (ordered-residual kernel), and the (N, H)
     float mask of defined entries."""
-    order = torch.where(defined, residuals, torch.inf).argsort(0)
-    rank = torch.empty_like(order)
-    rank.scatter_(0, order, torch.arange(order.shape[0], device=order.device)[:, None].expand_as(order))
-    keep = (defined.sum(0) * config.preference_share).ceil().clamp_min(1)
-    return ((rank < keep) & defined).to(residuals.dtype).T, defined.to(residuals.dtype).T
+    masked = torch.where(defined, residuals, torch.inf).T.contiguous()  # (N, H)
+    defined = defined.T
+    keep = (defined.sum(1) * config.preference_share).ceil().long().clamp_min(1)  # (N,)
+    smallest = masked.topk(int(keep.max()), dim=1, largest=False).values  # (N, k) ascending
+    largest_kept = smallest.gather(1, keep[:, None] - 1)  # the keep-th smallest of each track
+    return ((masked <= largest_kept) & defined).to(residuals.dtype), defined.to(residuals.dtype)
 
 
 def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
@@ -382,11 +391,13 @@ def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
 
 def tanimoto_similarity(preference: Tensor, mask: Tensor) -> Tensor:
     """(N, H) preferences and defined mask -> (N, N) Tanimoto similarity over the hypotheses
-    defined for both tracks (zero diagonal)."""
-    inner = preference @ preference.T
-    own = preference @ mask.T  # |p_i| restricted to the hypotheses defined for j
+    defined for both tracks (zero diagonal). The counts are products of 0/1 matrices, exact in
+    float32 (up to 2^24 hypotheses), which halves the cost of the two products."""
+    preference32 = preference.float()
+    inner = preference32 @ preference32.T
+    own = preference32 @ mask.float().T  # |p_i| restricted to the hypotheses defined for j
     denominator = own + own.T - inner
-    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(torch.finfo(inner.dtype).tiny), 0.0)
+    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(1.0), 0.0).to(preference.dtype)
     return similarity.fill_diagonal_(0.0)
 
 
@@ -435,7 +446,7 @@ def homography_residuals(tracks: Tensor, visible: Tensor, config: SegmentationCo
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames, 4,
                                                config, generator, guide)
     return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography,
-                            lambda G, x1, x2: transfer_error(G, x1, x2).sqrt())
+                            lambda G, x1, x2: transfer_error(G, x1[None], x2[None]).sqrt())
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

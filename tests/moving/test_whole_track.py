@@ -68,12 +68,14 @@ def test_gaps_untested_tracks_are_reported_not_kept():
     assert figures["undetected_rate"] <= 0.01 and figures["wrong_rate"] <= 0.05
 
 
-def test_all_tracks_moving_together_is_one_static_group():
+@pytest.mark.parametrize("config", [RIGID, Config()], ids=["rigid_groups", "segmentation"])
+def test_all_tracks_moving_together_is_one_static_group(config):
     """One rigid motion only (nothing else): documented fallback — it is the static scene."""
     scene = _scene(objects=1, noise=0.3)
     static = scene.tracks[:, scene.labels == 0]
-    result = reject_moving_objects_in_tracks(static, config=RIGID, generator=torch.Generator().manual_seed(0))
+    result = reject_moving_objects_in_tracks(static, config=config, generator=torch.Generator().manual_seed(0))
     assert result.static_group == 0 and result.background_mask.float().mean() >= 0.95
+    assert result.segmentation is None or result.segmentation.num_motions == 1
 
 
 def test_bad_input_is_named():

@@ -525,7 +525,9 @@ class SegmentationConfig:
     other motions it explains join it, pieces of it that it does not explain are cut out as
     moving bodies — a track is explained within the larger of ``scene_tolerance`` px (the
     tracker's noise floor) and the χ² bound at ``scene_significance``, a motion or piece by the
-    majority of its tracks (:func:`torchsfm.moving.segmentation.settle_scene`).
+    majority of its tracks (:func:`torchsfm.moving.segmentation.settle_scene`); the residual is
+    the scene's projective reconstruction (``scene_refinements`` camera / point alternations)
+    when the scene has parallax beyond that floor, else one F per frame pair.
     """
 
     hypotheses: int = 2000
@@ -549,6 +551,7 @@ class SegmentationConfig:
     max_tracks: int = 3000
     scene_tolerance: float = 1.0
     scene_significance: float = 1e-3
+    scene_refinements: int = 10
 
     @property
     def model_kinds(self) -> list[str]:
@@ -559,6 +562,7 @@ class SegmentationConfig:
         _require(self.hypotheses >= 10, "hypotheses", self.hypotheses, "must be >= 10")
         _require(self.max_tracks >= 100, "max_tracks", self.max_tracks, "must be >= 100")
         _require(self.scene_tolerance > 0, "scene_tolerance", self.scene_tolerance, "must be > 0")
+        _require(self.scene_refinements >= 0, "scene_refinements", self.scene_refinements, "must be >= 0")
         _require(0 < self.scene_significance < 1, "scene_significance", self.scene_significance, "must lie in (0, 1)")
         _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine", "homography"}, "models",
                  self.models, "a comma-separated list of fundamental, affine, homography")

@@ -204,7 +204,7 @@ def test_more_tracks_than_max_tracks_cluster_a_subset_and_fit_the_rest_to_the_mo
 
 def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     """A third of the sequence for full tracks; the median track span for short video tracks."""
-    from torchsfm.moving.segmentation import frame_pairs
+    from torchsfm.moving.segmentation import frame_pairs, median_span
 
     full = torch.ones(10, 30, dtype=torch.bool)
     assert frame_pairs(full).tolist() == [[f, f + 3] for f in range(7)]
@@ -213,4 +213,5 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     for track in range(40):  # every track seen in 3 consecutive frames: span 2
         short[track % 28:track % 28 + 3, track] = True
     pairs = frame_pairs(short)
+    assert median_span(short) == 2 and median_span(full) == 9
     assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28

@@ -48,13 +48,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.config import SegmentationConfig
+from torchsfm.config import RansacConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error, sampson_error_of_hypotheses
-from torchsfm.geometry.homography import transfer_error
+from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
-from torchsfm.moving.static_tracks import chi2_quantile
+from torchsfm.moving.static_tracks import chi2_quantile, rigid_group
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.robust.samplers import resolve_generator
 
@@ -153,7 +153,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     clusters[index] = found
     labels = scene_first(tracks, visible, clusters)
     if num_motions is None:
-        labels = settle_scene(tracks, visible, labels, piece_of, affinity, index, config)
+        labels = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
     num_motions = int(labels.max()) + 1
     assigned = labels[index]
     sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
@@ -179,24 +179,61 @@ def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor) -> Tensor:
     return torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
 
 
+def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
+                 generator: torch.Generator) -> Tensor:
+    """(N,) every track's residual under the scene's rigid motion over its inconsistency bound
+    (> 1: inconsistent; NaN where not judged), for the (N,) bool ``scene`` tracks.
+
+    The bound is the larger of ``config.scene_tolerance`` (the tracker's noise floor, px) and
+    σ·sqrt(χ²_(1−α)(d) / n) (σ the scene's median residual, n the residual's terms, d its
+    degrees of freedom, α = ``config.scene_significance``). The residual is the scene's
+    projective reconstruction over all frames (:func:`~torchsfm.moving.static_tracks.rigid_group`,
+    ``config.scene_refinements`` camera / point alternations; reprojection RMS, d = 2m − 3 for m
+    frames) when the scene has parallax — its median distance to one homography per frame pair
+    beyond the noise floor — and its tracks tie the frames together (median span at least a
+    third of the sequence, :func:`median_span`), for then the multi-view constraint also fixes
+    where along its epipolar line a point must be. Otherwise (a plane or a distant scene: the
+    reconstruction is degenerate; a video of short tracks: one projective reconstruction
+    chained over all its frames drifts) the residual is the RMS Sampson distance to one F per
+    frame pair (:func:`track_residuals`; d = n = the pairs a track is seen in).
+    """
+    plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
+    tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
+    if tied and float(plane[0][judged[0] & scene].median()) > config.scene_tolerance:
+        group = rigid_group(tracks, visible, scene, fundamental_ransac=RansacConfig(),
+                            resection_ransac=RansacConfig(inlier_threshold=2.0, max_trials=2000),
+                            refinements=config.scene_refinements, threshold=config.scene_tolerance,
+                            significance=config.scene_significance, generator=generator)
+        if not isinstance(group, str):
+            rms = torch.where(group.rms.isfinite(), group.rms, torch.nan)
+            terms = 2 * group.frames_seen.clamp_min(3)
+            return rms / _bound(rms[scene].nanmedian(), terms - 3, terms, config)
+    rms, judged = track_residuals(tracks, visible, scene[None], pairs)
+    rms = torch.where(judged[0], rms[0], torch.nan)
+    pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
+    return rms / _bound(rms[scene].nanmedian(), pairs_seen, pairs_seen, config)
+
+
+def _bound(sigma: Tensor, dof: Tensor, terms: Tensor, config: SegmentationConfig) -> Tensor:
+    """max(tolerance, σ·sqrt(χ²_(1−α)(dof) / terms)) per track."""
+    return (sigma.square() * chi2_quantile(dof, 1 - config.scene_significance) / terms).sqrt().clamp_min(config.scene_tolerance)
+
+
 def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
-                 clustered: Tensor, config: SegmentationConfig) -> Tensor:
+                 clustered: Tensor, config: SegmentationConfig, generator: torch.Generator) -> Tensor:
     """Make the static scene (label 0) what its rigid motion explains: motions it explains join
     it, pieces of it that it does not explain are cut out.
 
     The preference clustering may merge a body into the scene when their epipolar geometry
     nearly agrees over the sampled frames (a car driving along the camera's direction), and may
-    split a scene of several planes. The scene's motion — one F per frame pair
-    (:func:`frame_pairs`), a least-trimmed-squares fit to all its tracks
-    (:func:`track_residuals`) — gives every track its RMS Sampson distance; a track is
-    inconsistent beyond the larger of ``config.scene_tolerance`` (the tracker's noise floor) and
-    σ·sqrt(χ²_(1−α)(m) / m) (σ the scene's median RMS, m the pairs the track is seen in,
-    α = ``config.scene_significance``). A motion with at most half its tracks inconsistent joins
-    the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`) with more than half its
-    tracks inconsistent is cut. The cut pieces are merged into bodies by :func:`merge_clusters`
-    over their own links and labelled after the other motions — those a rigid motion of their
-    own explains (median RMS Sampson distance within the floor, :func:`motion_residuals`); the
-    others are outliers (-1). Nothing is cut when fewer than 12 scene tracks would remain.
+    split a scene of several planes. Every track's residual under the scene's rigid motion is
+    weighed against its noise bound (:func:`scene_excess`): a motion with at most half its
+    tracks beyond it joins the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`)
+    with more than half its tracks beyond it is cut. The cut pieces are merged into bodies by
+    :func:`merge_clusters` over their own links and labelled after the other motions — those a
+    rigid motion of their own explains (median RMS Sampson distance within
+    ``config.scene_tolerance``, :func:`motion_residuals`); the others are outliers (-1).
+    Nothing is cut when fewer than 12 scene tracks would remain.
 
     Args:
         tracks: (F, N, 2) pixels; visible: (F, N) bool.
@@ -209,12 +246,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     """
     scene = labels == 0
     pairs = frame_pairs(visible)
-    rms, judged = track_residuals(tracks, visible, scene[None], pairs)
-    rms = torch.where(judged[0], rms[0], torch.nan)
-    pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
-    floor = (rms[scene].nanmedian().square() * chi2_quantile(pairs_seen, 1 - config.scene_significance) / pairs_seen).sqrt()
-    floor = floor.clamp_min(config.scene_tolerance)
-    excess = rms / floor
+    excess = scene_excess(tracks, visible, scene, pairs, config, generator)
     labels = labels.clone()
     for motion in range(1, int(labels.max()) + 1):
         if excess[labels == motion].nanmedian() <= 1:
@@ -231,7 +263,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     bodies = merge_clusters(affinity[position][:, position], piece_index, None, config)
     members = torch.zeros(int(bodies.max()) + 1, labels.numel(), dtype=torch.bool, device=labels.device)
     members[bodies, clustered[position]] = True
-    rigid = motion_residuals(tracks, visible, members, pairs) <= float(floor[cut].median())
+    rigid = motion_residuals(tracks, visible, members, pairs) <= config.scene_tolerance
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
     return labels
 
@@ -526,27 +558,37 @@ def grid_coverage(tracks: Tensor, visible: Tensor, labels: Tensor, count: int) -
     return occupied.sum(1)
 
 
+def median_span(visible: Tensor) -> int:
+    """The median over the tracks seen at least twice of their span, last frame − first frame
+    ((F, N) visibility; 0 if none)."""
+    frame = torch.arange(visible.shape[0], device=visible.device)[:, None]
+    first = torch.where(visible, frame, visible.shape[0]).amin(0)
+    last = torch.where(visible, frame, -1).amax(0)
+    spans = (last - first)[visible.sum(0) >= 2]
+    return int(spans.median()) if spans.numel() else 0
+
+
 def frame_pairs(visible: Tensor, count: int | None = None) -> Tensor:
     """(P, 2) frame pairs (f, f + gap) for (F, N) visibility: gap = a third of the sequence, at
     most the median span (last frame − first frame) of the tracks seen twice, at least 1 — wide
     enough for parallax, short enough that the tracks of a video are seen at both ends; the
     first frames spread evenly, ``count`` of them (default: every possible one)."""
     F = visible.shape[0]
-    frame = torch.arange(F, device=visible.device)[:, None]
-    first = torch.where(visible, frame, F).amin(0)
-    last = torch.where(visible, frame, -1).amax(0)
-    spans = (last - first)[visible.sum(0) >= 2]
-    gap = max(1, min((F - 1) // 3, int(spans.median()) if spans.numel() else 1))
+    gap = max(1, min((F - 1) // 3, median_span(visible)))
     starts = torch.linspace(0, F - 1 - gap, min(count or F, F - gap), device=visible.device).round().long().unique()
     return torch.stack([starts, starts + gap], 1)
 
 
-def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor]:
-    """Every track's RMS Sampson distance (pixels) to one F per frame pair fitted to each of C
-    track sets: (F, N, 2) tracks, (F, N) visibility, (C, N) bool members, (P, 2) frame pairs ->
-    (C, N) RMS and (C, N) bool where defined (the track seen in a pair the set could fit). A
-    least-trimmed-squares 8-point fit (``REFITS`` refits on the half of the set with the smallest
-    residuals, so up to half of it may be strays)."""
+def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor,
+                    model: str = "fundamental") -> tuple[Tensor, Tensor]:
+    """Every track's RMS distance (pixels) to one two-view model per frame pair fitted to each of
+    C track sets: (F, N, 2) tracks, (F, N) visibility, (C, N) bool members, (P, 2) frame pairs ->
+    (C, N) RMS and (C, N) bool where defined (the track seen in a pair the set could fit). The
+    ``model`` is ``fundamental`` (8-point, Sampson distance) or ``homography`` (DLT, transfer
+    distance: a plane, or a scene without parallax). A least-trimmed-squares fit (``REFITS``
+    refits on the half of the set with the smallest residuals, so up to half of it may be
+    strays)."""
+    fit, distance = PAIR_MODELS[model]
     a, b = pairs[:, 0], pairs[:, 1]
     x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
     both = (visible[a] & visible[b])[None]  # (1, P, N)
@@ -556,14 +598,19 @@ def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Ten
     C = members.shape[0]
     x1, x2 = x1.expand(C, -1, -1, -1), x2.expand(C, -1, -1, -1)
     for _ in range(REFITS + 1):
-        model = eight_point(x1, x2, torch.where(usable[..., None], weights, 1.0))
-        residual = sampson_error(model, x1, x2).sqrt()  # (C, P, N)
+        residual = distance(fit(x1, x2, torch.where(usable[..., None], weights, 1.0)), x1, x2)  # (C, P, N)
         half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, P)
         weights = (seen & (residual <= half[..., None])).to(tracks.dtype)
         usable &= weights.sum(-1) >= SAMPLE_SIZE
     valid = both & usable[..., None]
     squares = torch.where(valid, residual.square(), 0.0).sum(1)
     return (squares / valid.sum(1).clamp_min(1)).sqrt(), valid.any(1)
+
+
+PAIR_MODELS = {
+    "fundamental": (eight_point, lambda F, x1, x2: sampson_error(F, x1, x2).sqrt()),
+    "homography": (homography_dlt, lambda G, x1, x2: transfer_error(G, x1, x2).sqrt()),
+}
 
 
 def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:

@@ -49,6 +49,14 @@ def torchsfm_fundamental(scene, seed):
     return result.F, None, None, result.inlier_mask
 
 
+SEVEN_POINT = torchsfm.with_overrides(torchsfm.Config(), ["fundamental.minimal_solver=seven_point"])
+
+
+def torchsfm_fundamental_seven_point(scene, seed):
+    result = torchsfm.estimate_fundamental(scene.x1, scene.x2, config=SEVEN_POINT, generator=torch.Generator().manual_seed(seed))
+    return result.F, None, None, result.inlier_mask
+
+
 def torchsfm_pose(scene, seed):
     result = torchsfm.estimate_relative_pose(scene.x1, scene.x2, scene.K1, scene.K2, generator=torch.Generator().manual_seed(seed))
     return result.F, result.R, result.t, result.inlier_mask
@@ -165,6 +173,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     methods: dict[str, Method] = {"torchsfm estimate_fundamental": torchsfm_fundamental,
+                                  "torchsfm estimate_fundamental 7pt": torchsfm_fundamental_seven_point,
                                   "torchsfm estimate_relative_pose": torchsfm_pose}
     for name, provider in (("OpenCV", opencv_methods), ("Kornia", kornia_methods), ("poselib", poselib_methods), ("pycolmap", pycolmap_methods)):
         try:

@@ -98,15 +98,19 @@ class FundamentalConfig:
     With ``refine``, ``refine_rounds`` LM runs each minimize the Sampson error over the points
     within ``refine_support_factor`` × the inlier threshold of the current F (ours: a support
     wider than the threshold keeps the noise distribution untruncated, which measurably lowers
-    the error of F; the returned inlier mask still uses the threshold itself).
+    the error of F; the returned inlier mask still uses the threshold itself). ``minimal_solver``
+    ``seven_point`` samples 7 correspondences (up to three F each) instead of 8.
     """
 
     ransac: RansacConfig = field(default_factory=RansacConfig)
     refine: bool = True
     refine_rounds: int = 1
     refine_support_factor: float = 1.5
+    minimal_solver: str = "eight_point"
 
     def __post_init__(self) -> None:
+        _require(self.minimal_solver in ("eight_point", "seven_point"), "minimal_solver", self.minimal_solver,
+                 "one of eight_point, seven_point")
         _require(self.refine_rounds >= 1, "refine_rounds", self.refine_rounds, "must be >= 1")
         _require(self.refine_support_factor >= 1, "refine_support_factor", self.refine_support_factor, "must be >= 1")
 

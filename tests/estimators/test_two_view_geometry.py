@@ -19,10 +19,12 @@ def _aligned(F, truth):
     return F * torch.sign((F * truth).sum())
 
 
+@pytest.mark.parametrize("solver", ["eight_point", "seven_point"])
 @pytest.mark.parametrize("outlier_ratio", [0.0, 0.3, 0.6])
-def test_fundamental_is_exact_on_noise_free_data(outlier_ratio):
+def test_fundamental_is_exact_on_noise_free_data(outlier_ratio, solver):
     scene = synthetic_two_view(300, outlier_ratio=outlier_ratio, seed=1)
-    estimate = torchsfm.estimate_fundamental(scene.x1, scene.x2, generator=_generator())
+    config = torchsfm.with_overrides(torchsfm.Config(), [f"fundamental.minimal_solver={solver}"])
+    estimate = torchsfm.estimate_fundamental(scene.x1, scene.x2, config=config, generator=_generator())
     assert_close(_aligned(estimate.F, scene.F), scene.F, rtol=0, atol=1e-8)
     assert torch.equal(estimate.inlier_mask, scene.is_inlier)
     assert estimate.F.shape == (3, 3) and estimate.num_trials.dim() == 0

@@ -10,10 +10,12 @@ from torchsfm.geometry.fundamental import (
     fundamental_from_projections,
     minimal_null_vectors,
     normalize_scale,
+    real_cubic_roots,
     sampson_error,
     sampson_error_of_hypotheses,
     sampson_jacobian,
     sampson_residual,
+    seven_point_minimal,
     symmetric_epipolar_distance,
 )
 from torchsfm.geometry.normalization import hartley_normalize
@@ -115,3 +117,34 @@ def test_sampson_jacobian_matches_autodiff():
     automatic = forward_jacobian(lambda f: sampson_residual(f.reshape(-1, 3, 3), x1, x2), F.reshape(2, 9), lambda p, d: p + d, 9)
     unit_directions = torch.eye(9, **DOUBLE).reshape(9, 3, 3).expand(2, 9, 3, 3)
     assert_close(sampson_jacobian(F, x1, x2, unit_directions), automatic, rtol=1e-10, atol=1e-12)
+
+
+def test_real_cubic_roots_one_and_three():
+    """(x - 1)(x - 2)(x + 3) = x³ - 7x + 6: three real roots; x³ + x + 1: one (−0.6823278...)."""
+    roots, real = real_cubic_roots(torch.tensor([0.0, 0.0], **DOUBLE), torch.tensor([-7.0, 1.0], **DOUBLE),
+                                   torch.tensor([6.0, 1.0], **DOUBLE))
+    assert real[0].all() and real[1].tolist() == [True, False, False]
+    assert_close(roots[0].sort().values, torch.tensor([-3.0, 1.0, 2.0], **DOUBLE), rtol=0, atol=1e-12)
+    assert_close(roots[1, 0], torch.tensor(-0.6823278038280193, **DOUBLE), rtol=0, atol=1e-12)
+
+
+def test_seven_point_recovers_the_true_F_among_its_roots():
+    """Noise-free: one of the (up to three) rank-2 F of every 7-point sample is the true F to
+    1e-8; every real root is exact on its sample; a degenerate sample (seven identical points)
+    raises nothing and returns no infinity (NaN, or a finite F that RANSAC's scoring discards)."""
+    scene = synthetic_two_view(60, seed=7)
+    index = torch.stack([torch.randperm(60, generator=torch.Generator().manual_seed(i))[:7] for i in range(16)])
+    x1, x2 = scene.x1[index][None], scene.x2[index][None]  # (1, 16, 7, 2)
+    F = seven_point_minimal(x1, x2, hartley_normalize(scene.x1[None])[1], hartley_normalize(scene.x2[None])[1])[0]
+    assert F.shape == (16, 3, 3, 3)
+    real = torch.isfinite(F).flatten(-2).all(-1)
+    assert real[:, 0].all()
+    error = sampson_error(F.nan_to_num(), scene.x1[None, None], scene.x2[None, None]).amax(-1)  # (16, 3) over all points
+    assert bool((error.where(real, torch.inf).amin(1) < 1e-12).all())
+    on_sample = sampson_error(F.nan_to_num(), x1[0][:, None], x2[0][:, None]).amax(-1)
+    assert bool((on_sample[real] < 1e-12).all())
+    assert torch.linalg.matrix_rank(F[real]).eq(2).all()
+    same = x1[:, :1].clone()
+    same[..., 1:, :] = same[..., :1, :]  # seven identical points
+    degenerate = seven_point_minimal(same, x2[:, :1], hartley_normalize(scene.x1[None])[1], hartley_normalize(scene.x2[None])[1])
+    assert degenerate.shape == (1, 1, 3, 3, 3) and not torch.isinf(degenerate).any()

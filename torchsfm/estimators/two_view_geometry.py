@@ -111,7 +111,7 @@ def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch
     """RANSAC + optional LM on float64 (B, N, 2) inputs with a (B, N) validity mask
     -> (F, inlier mask, trials, success)."""
     data = torch.cat([x1, x2], dim=-1)
-    model = FundamentalModel(data, valid)
+    model = FundamentalModel(data, valid, config.fundamental.minimal_solver)
     found = ransac(model, data, config.fundamental.ransac, valid=valid, generator=generator)
     found_one = found.success & torch.isfinite(found.model).flatten(1).all(-1)
     stand_in = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=x1.dtype, device=x1.device)  # [e1]x

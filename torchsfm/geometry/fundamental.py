@@ -101,6 +101,69 @@ def minimal_null_vectors(x1: Tensor, x2: Tensor, A1: Tensor, A2: Tensor) -> Tens
     return torch.where((info == 0)[..., None, None], f, torch.nan).reshape(*f.shape[:-2], 3, 3)
 
 
+def det3(M: Tensor) -> Tensor:
+    """Determinants of (*, 3, 3) matrices by cofactors (cheaper than an LU for many tiny ones)."""
+    return (M[..., 0, 0] * (M[..., 1, 1] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 1])
+            - M[..., 0, 1] * (M[..., 1, 0] * M[..., 2, 2] - M[..., 1, 2] * M[..., 2, 0])
+            + M[..., 0, 2] * (M[..., 1, 0] * M[..., 2, 1] - M[..., 1, 1] * M[..., 2, 0]))
+
+
+def real_cubic_roots(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """Real roots of x³ + a x² + b x + c (tensors of one shape *): (*, 3) roots and (*, 3) bool
+    real. Depressed cubic t³ + p t + q (x = t − a/3): one real root by Cardano where the
+    discriminant (q/2)² + (p/3)³ is positive, else three by the trigonometric method."""
+    p = b - a.square() / 3
+    q = 2 * a.pow(3) / 27 - a * b / 3 + c
+    discriminant = (q / 2).square() + (p / 3).pow(3)
+    one = discriminant > 0
+    root = torch.sqrt(discriminant.clamp_min(0))
+    cardano = torch.sign(-q / 2 + root) * (-q / 2 + root).abs().pow(1 / 3) + torch.sign(-q / 2 - root) * (-q / 2 - root).abs().pow(1 / 3)
+    negative_p = (-p).clamp_min(torch.finfo(p.dtype).tiny)
+    cosine = ((3 * q / (2 * -negative_p)) * torch.sqrt(3 / negative_p)).clamp(-1, 1)
+    angle = torch.acos(cosine)[..., None] / 3 - 2 * torch.pi * torch.arange(3, dtype=p.dtype, device=p.device) / 3
+    trigonometric = 2 * torch.sqrt(negative_p / 3)[..., None] * torch.cos(angle)
+    t = torch.where(one[..., None], torch.stack([cardano, cardano, cardano], -1), trigonometric)
+    real = torch.ones_like(t, dtype=torch.bool)
+    real[..., 1:] = ~one[..., None]
+    return t - (a / 3)[..., None], real & torch.isfinite(t)
+
+
+def seven_point_minimal(x1: Tensor, x2: Tensor, T1: Tensor, T2: Tensor) -> Tensor:
+    """The 7-point algorithm on (B, K, 7, 2) samples, built for RANSAC batches: up to three F.
+
+    In the conditioned frame (T1, T2 (B, 3, 3), Hartley's maps of the whole problem) the 7×9
+    design matrix has a 2-dimensional null space G1, G2 (one 9×9 LU solve with two generic gauge
+    rows and two right-hand sides, as :func:`minimal_null_vectors`); det(α G1 + (1 − α) G2) = 0 is
+    a cubic in α, its coefficients interpolated from four determinants and its real roots the
+    closed-form roots (:func:`real_cubic_roots`). Each real root gives a rank-2 F, exact on the sample.
+    Fewer samples than the 8-point algorithm's at the same confidence (0.4^7 vs 0.4^8 good
+    samples at 60 % outliers: 2.5× fewer), at up to three hypotheses per sample.
+
+    Returns:
+        (B, K, 3, 3, 3) F in pixels (unit norm), the roots along dim 2 (NaN where a root is
+        complex or the sample degenerate).
+    """
+    design = epipolar_design_matrix(apply_affine(T1[:, None], x1), apply_affine(T2[:, None], x2))  # (B, K, 7, 9)
+    gauge = design.new_tensor([_GAUGE_ROW, _GAUGE_ROW[::-1]]).expand(*design.shape[:-2], 2, 9)
+    rhs = design.new_zeros(*design.shape[:-2], 9, 2)
+    rhs[..., 7, 0] = rhs[..., 8, 1] = 1.0
+    null, info = torch.linalg.solve_ex(torch.cat([design, gauge], dim=-2), rhs)
+    G1, G2 = null[..., 0].reshape(*null.shape[:-2], 3, 3), null[..., 1].reshape(*null.shape[:-2], 3, 3)
+    d = det3(torch.stack([a * G1 + (1 - a) * G2 for a in (-1.0, 0.0, 1.0, 2.0)], dim=-3))  # (B, K, 4)
+    c0, c2 = d[..., 1], (d[..., 2] + d[..., 0]) / 2 - d[..., 1]
+    odd = (d[..., 2] - d[..., 0]) / 2  # c3 + c1
+    c3 = (d[..., 3] - 4 * c2 - c0 - 2 * odd) / 6
+    c1 = odd - c3
+    usable = (info == 0) & (c3.abs() > 1e-12 * d.abs().amax(-1)) & torch.isfinite(d).all(-1)
+    lead = torch.where(usable, c3, 1.0)
+    alpha, real = real_cubic_roots(c2 / lead, c1 / lead, c0 / lead)  # (B, K, 3)
+    real &= usable[..., None]
+    alpha = alpha[..., None, None]
+    G = alpha * G1[..., None, :, :] + (1 - alpha) * G2[..., None, :, :]  # (B, K, 3, 3, 3)
+    F = normalize_scale(T2[:, None, None].transpose(-1, -2) @ G @ T1[:, None, None])
+    return torch.where(real[..., None, None], F, torch.nan)
+
+
 def eight_point_minimal(x1: Tensor, x2: Tensor, T1: Tensor, T2: Tensor) -> Tensor:
     """The normalized 8-point algorithm on (B, K, 8, 2) samples, built for RANSAC batches.
 

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.camera import to_homogeneous
-from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses
+from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses, seven_point_minimal
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
@@ -17,27 +17,38 @@ from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projectio
 class FundamentalModel:
     """F from correspondences; data rows are ``(x1, y1, x2, y2)`` in pixels (D = 4).
 
-    Minimal solver: the normalized 8-point algorithm (Alg. 3.3.2) with Hartley's normalization
-    computed once on all valid correspondences of each problem; non-minimal refits normalize
-    their own point set. Residual: the Sampson error (eq. 3.3.6) in pixels², so the RANSAC
+    Minimal solver: ``eight_point``, the normalized 8-point algorithm (Alg. 3.3.2), or
+    ``seven_point`` (up to three F per sample; fewer samples at the same confidence), with
+    Hartley's normalization computed once on all valid correspondences of each problem;
+    non-minimal refits normalize their own point set. Residual: the Sampson error (eq. 3.3.6) in pixels², so the RANSAC
     threshold is a Sampson distance in pixels. Residuals are computed in float32 (scoring only
     compares them with the threshold; the error is ~1e-3 px).
 
     Args:
         data: (B, N, 4) the correspondences the model will be fitted to.
         valid: optional (B, N) bool mask of real rows.
+        solver: ``eight_point`` or ``seven_point``.
     """
 
     sample_size = 8
 
-    def __init__(self, data: Tensor, valid: Tensor | None = None) -> None:
+    def __init__(self, data: Tensor, valid: Tensor | None = None, solver: str = "eight_point") -> None:
         weights = None if valid is None else valid.to(data.dtype)
         self.T1 = hartley_normalize(data[..., :2], weights)[1]
         self.T2 = hartley_normalize(data[..., 2:], weights)[1]
+        self.solver = solver
+        self.sample_size = 7 if solver == "seven_point" else 8
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
-        F = eight_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2)  # (B, K, 3, 3)
-        return F, torch.isfinite(F).flatten(-2).all(-1)
+        if self.solver == "eight_point":
+            F = eight_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2)  # (B, K, 3, 3)
+            return F, torch.isfinite(F).flatten(-2).all(-1)
+        F = seven_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2).flatten(1, 2)  # (B, 3K, 3, 3)
+        ok = torch.isfinite(F).flatten(-2).all(-1)
+        keep = ok.sum(1).max().clamp_min(1)  # the real roots first, the batch cut to the most any problem has
+        order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
+        rows = torch.arange(F.shape[0], device=F.device)[:, None]
+        return F[rows, order], ok[rows, order]
 
     def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
         return eight_point(data[..., :2], data[..., 2:], weights)

@@ -35,6 +35,9 @@ minimal-sample models:
    sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
    rigidity votes reject least); callers holding better evidence choose another label as the
    scene (``sizes`` and ``coverage`` are per label).
+6. **The scene settled** (number of motions found, not given): motions the scene's rigid motion
+   explains join it, pieces of it that it does not explain are cut out as bodies
+   (:func:`settle_scene`, :func:`scene_excess`).
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.

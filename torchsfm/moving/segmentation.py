@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.config import RansacConfig, SegmentationConfig
+from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error, sampson_error_of_hypotheses
 from torchsfm.geometry.homography import homography_dlt, transfer_error
@@ -203,8 +203,8 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
     if tied and float(plane[0][judged[0] & scene].median()) > config.scene_tolerance:
-        group = rigid_group(tracks, visible, scene, fundamental_ransac=RansacConfig(),
-                            resection_ransac=RansacConfig(inlier_threshold=2.0, max_trials=2000),
+        group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
+                            resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
                             refinements=config.scene_refinements, threshold=config.scene_tolerance,
                             significance=config.scene_significance, generator=generator)
         if not isinstance(group, str):

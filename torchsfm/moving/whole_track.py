@@ -12,11 +12,11 @@ Two kinds of evidence, combined by ``moving_objects.track_method``:
   triplet saw: the group covering most cells of an 8×8 grid over the image, i.e. the scene
   surrounds the objects). Every track of the static group is background.
 * ``both`` — background for both.
-* ``segmentation`` — every rigid motion is segmented first
+* ``segmentation`` (the default) — every rigid motion is segmented first
   (:func:`torchsfm.moving.segmentation.segment_motions`, the number of motions found by the
-  method) and the static scene is its label 0, the motion covering most of the image (measured
-  on Hopkins155 and KT3DMoSeg: a better choice than the motion the triplet votes reject least);
-  no triplet votes are cast. Tracks it leaves unassigned (too short, outliers) are untested.
+  method) and the static scene is its label 0: the motion covering most of the image (measured
+  on Hopkins155 and KT3DMoSeg: a better choice than the motion the triplet votes reject least),
+  then made what its own rigid motion explains (``settle_scene``); no triplet votes are cast. Tracks it leaves unassigned (too short, outliers) are untested.
 
 A track seen in fewer than three frames cannot be judged: it is reported as untested and not
 kept as background.

@@ -20,8 +20,8 @@ class FundamentalModel:
     Minimal solver: ``eight_point``, the normalized 8-point algorithm (Alg. 3.3.2), or
     ``seven_point`` (up to three F per sample; fewer samples at the same confidence), with
     Hartley's normalization computed once on all valid correspondences of each problem;
-    non-minimal refits normalize their own point set. Residual: the Sampson error (eq. 3.3.6) in pixels², so the RANSAC
-    threshold is a Sampson distance in pixels. Residuals are computed in float32 (scoring only
+    non-minimal refits normalize their own point set. Residual: the Sampson error (eq. 3.3.6)
+    in pixels², so the RANSAC threshold is a Sampson distance in pixels. Residuals are computed in float32 (scoring only
     compares them with the threshold; the error is ~1e-3 px).
 
     Args:
@@ -45,7 +45,7 @@ class FundamentalModel:
             return F, torch.isfinite(F).flatten(-2).all(-1)
         F = seven_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2).flatten(1, 2)  # (B, 3K, 3, 3)
         ok = torch.isfinite(F).flatten(-2).all(-1)
-        keep = ok.sum(1).max().clamp_min(1)  # the real roots first, the batch cut to the most any problem has
+        keep = max(1, int(ok.sum(1).max()))  # the real roots first, the batch cut to the most any problem has
         order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
         rows = torch.arange(F.shape[0], device=F.device)[:, None]
         return F[rows, order], ok[rows, order]

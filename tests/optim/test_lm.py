@@ -63,7 +63,7 @@ def test_iteration_cap_reports_not_converged():
 def test_damping_adapts_to_scale(shift):
     """A linear least-squares problem is solved whatever the scale of the Jacobian."""
     A = shift * torch.randn(1, 10, 3, generator=torch.Generator().manual_seed(2), **DOUBLE)
-    b = torch.randn(1, 10, **DOUBLE)
+    b = torch.randn(1, 10, **DOUBLE, generator=torch.Generator().manual_seed(101))
     result = levenberg_marquardt(lambda p: (A @ p[..., None]).squeeze(-1) - b, torch.zeros(1, 3, **DOUBLE), LMConfig())
     expected = torch.linalg.lstsq(A, b[..., None]).solution.squeeze(-1)
     assert_close(result.params, expected, rtol=1e-6, atol=1e-9)

@@ -35,8 +35,8 @@ def test_bucketed_samples_come_from_distinct_buckets():
 
 def test_bucket_probability_is_proportional_to_its_count():
     """A bucket holding half the points is drawn first about half the time."""
-    crowded = torch.full((1, 300, 2), 5.0, dtype=torch.float64) + torch.rand(1, 300, 2, dtype=torch.float64)
-    spread = torch.rand(1, 300, 2, dtype=torch.float64) * 800
+    crowded = torch.full((1, 300, 2), 5.0, dtype=torch.float64) + torch.rand(1, 300, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(104))
+    spread = torch.rand(1, 300, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(105)) * 800
     points = torch.cat([crowded, spread], dim=1)
     points[0, 0] = torch.tensor([0.0, 0.0], dtype=torch.float64)
     points[0, 1] = torch.tensor([800.0, 800.0], dtype=torch.float64)

@@ -12,10 +12,10 @@ with the symmetry fix of §3.2.2.2.1, made exact: a neighbour pair (k, l) counts
 k's best and k is l's best. (The thesis keeps, among the k whose best is the same l, the largest;
 that removes the double counting but is not symmetric when a dropped k has another partner — the
 mutual-best rule gives the same SM whichever image comes first, which is what the fix is for, and
-agrees with the thesis' rule whenever the best partners are unique.) Candidate pairs are evaluated
-as dense tensors, a block of spatially nearby rows at a time against the candidates in the
-surrounding tiles (one neighbourhood radius wide), so the cost grows with the candidates' local
-density, not with their number squared.
+agrees with the thesis' rule whenever the best partners are unique.) Candidate pairs are evaluated a
+block of spatially nearby rows at a time against the candidates in the surrounding tiles (one
+neighbourhood radius wide), and only the pairs within the radius are kept (a sparse list), so the
+cost grows with the candidates' local density, not with their number squared.
 Relaxation then accepts matches iteratively: winner-take-all accepts every candidate that is the
 best of both its points; some-winners-take-all (default) accepts only those in the top α of both
 the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10).
@@ -46,7 +46,6 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     config = config or MatchingConfig()
     i, j, c = candidates.index1, candidates.index2, candidates.score
     M, N1, N2 = i.numel(), points1.shape[0], points2.shape[0]
-    distances1, distances2 = torch.cdist(points1, points1), torch.cdist(points2, points2)
     strength = torch.zeros(M, dtype=points1.dtype, device=points1.device)
     if M == 0:
         return strength
@@ -65,21 +64,24 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
                 near[tile[rows, 1] + dy, tile[rows, 0] + dx] = True
         cols = torch.nonzero(near[tile[:, 1] + 1, tile[:, 0] + 1]).flatten()
         ci, cj = i[cols], j[cols]
-        d1 = distances1[i[rows]][:, ci]  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
-        d2 = distances2[j[rows]][:, cj]  # (R, C): d(m2j, n2l)
+        d1 = torch.cdist(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
+        d2 = torch.cdist(points2[j[rows]], points2[cj])  # (R, C): d(m2j, n2l)
         neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
                      & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))
+        r_index, c_index = torch.nonzero(neighbour, as_tuple=True)  # the E neighbouring pairs
+        d1, d2 = d1[r_index, c_index], d2[r_index, c_index]
         dist = 0.5 * (d1 + d2)
         r = (d1 - d2).abs() / dist.clamp_min(1e-12)
-        gain = torch.where(neighbour & (r < config.relative_distance_threshold),
-                           torch.exp(-r / config.relative_distance_threshold), 0.0)
-        value = c[cols][None] * gain / (1 + dist)  # (R, C), 0 where (k, l) does not support (i, j)
-        R, C = value.shape
-        best_of_k = value.new_zeros(R, N1).scatter_reduce(1, ci.expand(R, C), value, "amax")
-        best_of_l = value.new_zeros(R, N2).scatter_reduce(1, cj.expand(R, C), value, "amax")
-        counted = ((value > 0) & (value == best_of_k.gather(1, ci.expand(R, C)))
-                   & (value == best_of_l.gather(1, cj.expand(R, C))))  # mutual best: the symmetry fix
-        strength[rows] = c[rows] * torch.where(counted, value, 0.0).sum(-1)
+        value = torch.where(r < config.relative_distance_threshold,
+                            c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist), 0.0)  # (E,)
+        R = rows.numel()
+        k_slot = r_index * N1 + ci[c_index]  # (E,): entry (row, k) of a flattened (R, N1) table
+        l_slot = r_index * N2 + cj[c_index]  # (E,): entry (row, l) of a flattened (R, N2) table
+        best_of_k = value.new_zeros(R * N1).scatter_reduce(0, k_slot, value, "amax")
+        best_of_l = value.new_zeros(R * N2).scatter_reduce(0, l_slot, value, "amax")
+        counted = (value > 0) & (value == best_of_k[k_slot]) & (value == best_of_l[l_slot])  # mutual best: the symmetry fix
+        total = value.new_zeros(R).index_add_(0, r_index, torch.where(counted, value, 0.0))
+        strength[rows] = c[rows] * total
     return strength
 
 

@@ -40,7 +40,8 @@ def test_F_refinement_keeps_an_exact_solution():
 def test_pose_jacobian_matches_autodiff():
     scene = synthetic_two_view(30, noise=1.0, seed=3)
     K = scene.K1[None]
-    residuals, jacobian = pose_refinement.relative_pose_problem(scene.x1[None], scene.x2[None], K, K, torch.rand(1, 30, **DOUBLE, generator=torch.Generator().manual_seed(110)))
+    weights = torch.rand(1, 30, **DOUBLE, generator=torch.Generator().manual_seed(110))
+    residuals, jacobian = pose_refinement.relative_pose_problem(scene.x1[None], scene.x2[None], K, K, weights)
     state = torch.cat([scene.R.flatten(), scene.t])[None]
     automatic = forward_jacobian(residuals, state, pose_refinement.retract_pose, 5)
     assert_close(jacobian(state), automatic, rtol=1e-9, atol=1e-10)

@@ -298,10 +298,11 @@ class PairsConfig:
     """Which view pairs are matched, and the coarse matching that guides them
     (:mod:`torchsfm.sfm.pairs`).
 
-    ``mode``: ``auto`` (every pair up to ``exhaustive_up_to`` views, else ``similarity``),
-    ``sequential`` (pairs (i, i + d), d = 1 .. ``window``: video), ``exhaustive``, or
+    ``mode``: ``sequential`` (pairs (i, i + d), d = 1 .. ``window``: video), ``exhaustive``,
     ``similarity`` (each view's ``neighbours`` best partners by the coarse score and the pairs of
-    the sequential window, all if their score reaches ``min_score``). Coarse matching: images reduced to about
+    the sequential window, those with ``min_score`` coarse matches and as many inliers of a
+    coarse homography; a view left with none keeps its best partners), or ``auto`` (similarity,
+    over every pair up to ``exhaustive_up_to`` views). Coarse matching: images reduced to about
     ``coarse_size`` px on the long side, ``coarse_corners`` Harris corners, NCC on
     (2 ``patch_half_size`` + 1)² patches, mutual best above ``ncc_threshold``. ``guided``: a
     homography fitted to the coarse matches (``homography_threshold`` px, at least ``min_score``

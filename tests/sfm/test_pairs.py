@@ -7,7 +7,7 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import coarse_features, pair_scores, predicted_homography, select_pairs
+from torchsfm.sfm.pairs import coarse_features, coarse_homography, pair_scores, select_pairs
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -19,11 +19,22 @@ def test_pair_modes():
     scores = torch.tensor([[0, 50, 0, 40], [50, 0, 30, 0], [0, 30, 0, 20], [40, 0, 20, 0]])
     assert select_pairs(scores, PairsConfig(mode="sequential", window=2), 4) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
     assert len(select_pairs(scores, PairsConfig(mode="exhaustive"), 4)) == 6
-    assert len(select_pairs(scores, PairsConfig(mode="auto", exhaustive_up_to=4), 4)) == 6
+    # auto on a small set: every pair with min_score coarse matches (0-2 and 1-3 have none)
+    assert select_pairs(scores, PairsConfig(mode="auto", exhaustive_up_to=4), 4) == [(0, 1), (0, 3), (1, 2), (2, 3)]
     # similarity: each view's best partner (0-3 is far apart in the file order) and the window
     # pairs that score at least min_score (2-3 scores 20: kept; 1-2 scores 30: kept)
     assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=12), 4) == [(0, 1), (0, 3), (1, 2), (2, 3)]
     assert select_pairs(scores, PairsConfig(mode="similarity", window=1, neighbours=1, min_score=25), 4) == [(0, 1), (0, 3), (1, 2)]
+
+
+def test_pairs_whose_coarse_homography_fails_are_dropped_unless_a_view_would_be_left_alone():
+    """0-3 and 1-2 score well but no homography joins their matches: dropped. When 2-3 fails
+    too, views 2 and 3 keep their best-scoring partners (1-2, 0-3) rather than none."""
+    scores = torch.tensor([[0, 50, 0, 40], [50, 0, 30, 0], [0, 30, 0, 20], [40, 0, 20, 0]])
+    inliers = {(0, 1): 40, (0, 3): 6, (1, 2): 5, (2, 3): 30, (0, 2): 0, (1, 3): 0}
+    for config in (PairsConfig(mode="auto", neighbours=1), PairsConfig(mode="similarity", window=1, neighbours=1)):
+        assert select_pairs(scores, config, 4, lambda i, j: inliers[(i, j)]) == [(0, 1), (2, 3)]
+        assert select_pairs(scores, config, 4, lambda i, j: inliers[(i, j)] if (i, j) != (2, 3) else 7) == [(0, 1), (0, 3), (1, 2)]
 
 
 def test_related_views_score_higher_than_an_unrelated_one():
@@ -43,8 +54,8 @@ def test_predicted_homography_follows_a_large_shift():
     grey = _bundled_greys()[0]
     shifted = torch.roll(grey, shifts=(-40, 120), dims=(-2, -1))
     features = coarse_features(torch.stack([grey, shifted]), PairsConfig())
-    H = predicted_homography(features, 0, 1, PairsConfig(), torch.Generator().manual_seed(0))
-    assert H is not None
+    H, inliers = coarse_homography(features, 0, 1, PairsConfig(), torch.Generator().manual_seed(0))
+    assert H is not None and inliers >= PairsConfig().min_score
     points = torch.tensor([[200.0, 200.0, 1.0], [500.0, 300.0, 1.0], [300.0, 400.0, 1.0]], dtype=torch.float64)
     moved = points @ H.T
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:] - points[:, :2],

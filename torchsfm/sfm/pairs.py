@@ -10,13 +10,14 @@ own position: disparities of hundreds of pixels then need no larger disc.
 
 Pair selection (``pairs.mode``): ``sequential`` — (i, i + d) for d = 1 .. ``window`` (video);
 ``exhaustive`` — every pair; ``similarity`` — each view's ``neighbours`` best-scoring partners
-plus the pairs of the sequential window that score at least ``min_score`` (so a shuffled set
-wastes no time on its file neighbours); ``auto`` — exhaustive up to ``exhaustive_up_to`` views,
-else similarity.
+and the pairs of the sequential window, where the pair's coarse homography holds (so a shuffled
+set wastes no time on its file neighbours, nor a set on views that share nothing); ``auto`` —
+similarity, over every pair up to ``exhaustive_up_to`` views.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -85,49 +86,67 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     return scores + scores.T
 
 
-def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> list[tuple[int, int]]:
+def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int,
+                 coarse_inliers: Callable[[int, int], int] | None = None) -> list[tuple[int, int]]:
     """View pairs (i < j) of ``num_views`` to verify, from the coarse scores (V, V) and
-    ``config.mode`` (``sequential`` and ``exhaustive`` need no scores: None)."""
+    ``config.mode`` (``sequential`` and ``exhaustive`` need no scores: None).
+
+    ``similarity`` (and ``auto`` beyond ``exhaustive_up_to`` views) considers the sequential
+    window and each view's ``neighbours`` best-scoring partners; ``auto`` up to
+    ``exhaustive_up_to`` views considers every pair. A considered pair needs ``min_score``
+    mutual-best matches and, where ``coarse_inliers(i, j)`` is given, that many inliers of its
+    coarse homography: views that show nothing in common still share chance mutual-best matches
+    (dozens on a textured facade), but no homography joins more than a handful of them, so the
+    geometric count is the one that tells related pairs apart. A view left without any pair falls
+    back to its best-scoring partners (the score alone), so no view loses the pairs it had."""
     V = num_views
-    mode = config.mode
-    if mode == "auto":
-        mode = "exhaustive" if V <= config.exhaustive_up_to else "similarity"
-    if mode == "exhaustive":
-        return [(i, j) for i in range(V) for j in range(i + 1, V)]
+    pairs = [(i, j) for i in range(V) for j in range(i + 1, V)]
+    if config.mode == "exhaustive":
+        return pairs
     window = {(i, i + d) for d in range(1, config.window + 1) for i in range(V - d)}
-    if mode == "sequential":
+    if config.mode == "sequential":
         return sorted(window)
-    chosen = {(i, j) for i, j in window if int(scores[i, j]) >= config.min_score}
     ranked = torch.argsort(scores, dim=1, descending=True)[:, : config.neighbours]
-    for i in range(V):
-        for j in ranked[i].tolist():
-            if j != i and int(scores[i, j]) >= config.min_score:
-                chosen.add((min(i, j), max(i, j)))
+    partners = {(min(i, j), max(i, j)) for i in range(V) for j in ranked[i].tolist() if j != i}
+    considered = pairs if config.mode == "auto" and V <= config.exhaustive_up_to else sorted(window | partners)
+    scored = [(i, j) for i, j in considered if int(scores[i, j]) >= config.min_score]
+    chosen = {pair for pair in scored if coarse_inliers is None or coarse_inliers(*pair) >= config.min_score}
+    for i in set(range(V)) - {v for pair in chosen for v in pair}:
+        chosen |= {pair for pair in partners if i in pair and int(scores[pair]) >= config.min_score}
     return sorted(chosen)
 
 
-def pairs_to_match(greys: Tensor, config: PairsConfig, features: CoarseFeatures | None = None) -> list[tuple[int, int]]:
-    """The view pairs (i < j) of (V, 1, H, W) grey images to match: :func:`select_pairs` on the
-    coarse scores, which only the ``auto`` and ``similarity`` modes compute (from ``features`` if
-    given, else from the images)."""
-    scores = None
-    if config.mode not in ("sequential", "exhaustive"):
-        scores = pair_scores(features if features is not None else coarse_features(greys, config), config.ncc_threshold)
-    return select_pairs(scores, config, greys.shape[0])
+def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generator | None = None,
+                   guided: bool = False) -> dict[tuple[int, int], Tensor | None]:
+    """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
+    coarse features), each with its coarse homography (:func:`coarse_homography`) where
+    ``guided`` asks for it (None otherwise, and where none holds). Each pair's homography is
+    fitted once, for the selection and the guidance alike."""
+    features = coarse_features(greys, config)
+    fitted: dict[tuple[int, int], tuple[Tensor | None, int]] = {}
+
+    def fit(i: int, j: int) -> tuple[Tensor | None, int]:
+        if (i, j) not in fitted:
+            fitted[(i, j)] = coarse_homography(features, i, j, config, generator)
+        return fitted[(i, j)]
+
+    scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
+    chosen = select_pairs(scores, config, greys.shape[0], lambda i, j: fit(i, j)[1])
+    return {(i, j): fit(i, j)[0] if guided else None for i, j in chosen}
 
 
-def predicted_homography(features: CoarseFeatures, i: int, j: int, config: PairsConfig,
-                         generator: torch.Generator | None = None) -> Tensor | None:
+def coarse_homography(features: CoarseFeatures, i: int, j: int, config: PairsConfig,
+                      generator: torch.Generator | None = None) -> tuple[Tensor | None, int]:
     """The homography (3, 3) mapping view i's pixels to view j's, fitted by RANSAC to the coarse
-    mutual-best matches; None if fewer than ``min_score`` matches support it."""
+    mutual-best matches, and its number of inliers; the homography is None if it has fewer than
+    ``min_score`` inliers."""
     ki, kj = features.valid[i], features.valid[j]
     ncc = features.patches[i][ki] @ features.patches[j][kj].T
     a, b = _mutual_best(ncc, config.ncc_threshold)
     if a.numel() < config.min_score:
-        return None
+        return None, int(a.numel())
     data = torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1)[None]
     found = ransac(HomographyModel(data), data, RansacConfig(inlier_threshold=config.homography_threshold, max_trials=2000),
                    generator=generator)
-    if int(found.inlier_mask.sum()) < config.min_score:
-        return None
-    return found.model[0]
+    inliers = int(found.inlier_mask.sum())
+    return (found.model[0] if inliers >= config.min_score else None), inliers

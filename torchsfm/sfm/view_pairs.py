@@ -23,7 +23,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ransac import ransac
-from torchsfm.sfm.pairs import coarse_features, pairs_to_match, predicted_homography
+from torchsfm.sfm.pairs import pairs_to_match
 from torchsfm.sfm.tracks import Tracks
 
 Progress = Callable[[str], None]
@@ -58,13 +58,10 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     disc; pairs with fewer than ``min_pair_inliers`` matches are dropped. Only the matched corner
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs)."""
-    features = coarse_features(greys, config.pairs)
-    pairs = pairs_to_match(greys, config.pairs, features)
     putative = {}
-    for i, j in pairs:
+    for (i, j), H in pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided).items():
         report(f"matching views {i} and {j}")
         predicted = warp = None
-        H = predicted_homography(features, i, j, config.pairs, generator) if config.pairs.guided else None
         if H is not None:
             moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
             if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:

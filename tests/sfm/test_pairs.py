@@ -7,7 +7,7 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import coarse_features, coarse_homography, pair_scores, select_pairs
+from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, select_pairs
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -33,8 +33,8 @@ def test_pairs_whose_coarse_homography_fails_are_dropped_unless_a_view_would_be_
     scores = torch.tensor([[0, 50, 0, 40], [50, 0, 30, 0], [0, 30, 0, 20], [40, 0, 20, 0]])
     inliers = {(0, 1): 40, (0, 3): 6, (1, 2): 5, (2, 3): 30, (0, 2): 0, (1, 3): 0}
     for config in (PairsConfig(mode="auto", neighbours=1), PairsConfig(mode="similarity", window=1, neighbours=1)):
-        assert select_pairs(scores, config, 4, lambda i, j: inliers[(i, j)]) == [(0, 1), (2, 3)]
-        assert select_pairs(scores, config, 4, lambda i, j: inliers[(i, j)] if (i, j) != (2, 3) else 7) == [(0, 1), (0, 3), (1, 2)]
+        assert select_pairs(scores, config, 4, inliers) == [(0, 1), (2, 3)]
+        assert select_pairs(scores, config, 4, {**inliers, (2, 3): 7}) == [(0, 1), (0, 3), (1, 2)]
 
 
 def test_related_views_score_higher_than_an_unrelated_one():
@@ -54,8 +54,9 @@ def test_predicted_homography_follows_a_large_shift():
     grey = _bundled_greys()[0]
     shifted = torch.roll(grey, shifts=(-40, 120), dims=(-2, -1))
     features = coarse_features(torch.stack([grey, shifted]), PairsConfig())
-    H, inliers = coarse_homography(features, 0, 1, PairsConfig(), torch.Generator().manual_seed(0))
-    assert H is not None and inliers >= PairsConfig().min_score
+    homographies, inliers = coarse_homographies(features, [(0, 1)], PairsConfig(), torch.Generator().manual_seed(0))
+    H = homographies[(0, 1)]
+    assert H is not None and inliers[(0, 1)] >= PairsConfig().min_score
     points = torch.tensor([[200.0, 200.0, 1.0], [500.0, 300.0, 1.0], [300.0, 400.0, 1.0]], dtype=torch.float64)
     moved = points @ H.T
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:] - points[:, :2],

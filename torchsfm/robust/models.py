@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from torch import Tensor
 
@@ -38,6 +40,9 @@ class FundamentalModel:
         self.T2 = hartley_normalize(data[..., 2:], weights)[1]
         self.solver = solver
         self.sample_size = 7 if solver == "seven_point" else 8
+
+    def restricted(self, problems: Tensor) -> FundamentalModel:
+        return _restricted(self, problems, "T1", "T2")
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         if self.solver == "eight_point":
@@ -76,6 +81,9 @@ class ResectionModel:
     def __init__(self, K: Tensor, solver: str = "p3p") -> None:
         self.K, self.K_inv, self.solver = K, torch.linalg.inv(K), solver
         self.sample_size = 3 if solver == "p3p" else 6
+
+    def restricted(self, problems: Tensor) -> ResectionModel:
+        return _restricted(self, problems, "K", "K_inv")
 
     def _projection(self, R: Tensor, t: Tensor) -> Tensor:
         K = self.K.reshape(self.K.shape[0], *[1] * (R.dim() - 3), 3, 3)
@@ -120,6 +128,9 @@ class HomographyModel:
         weights = None if valid is None else valid.to(data.dtype)
         self.T1 = hartley_normalize(data[..., :2], weights)[1]
         self.T2 = hartley_normalize(data[..., 2:], weights)[1]
+
+    def restricted(self, problems: Tensor) -> HomographyModel:
+        return _restricted(self, problems, "T1", "T2")
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         T1, T2 = self.T1[:, None], self.T2[:, None]  # (B, 1, 3, 3)
@@ -169,6 +180,9 @@ class PlanarFlowModel:
         weights = None if valid is None else valid.to(data.dtype)
         self.T = hartley_normalize(data[..., :2], weights)[1]  # (B, 3, 3)
 
+    def restricted(self, problems: Tensor) -> PlanarFlowModel:
+        return _restricted(self, problems, "T")
+
     def normalize(self, data: Tensor) -> tuple[Tensor, Tensor]:
         """Reference points (B, ..., 2) and displacements (B, ..., J, 2) of (B, ..., D) rows in
         the normalized frame."""
@@ -217,6 +231,11 @@ class JointModel:
         self.models = [model_class(frame, valid) for frame in self._frames(data)]
         self.sample_size = self.models[0].sample_size
 
+    def restricted(self, problems: Tensor) -> JointModel:
+        joint = copy.copy(self)
+        joint.models = [model.restricted(problems) for model in self.models]
+        return joint
+
     @staticmethod
     def _frames(data: Tensor) -> list[Tensor]:
         return [torch.cat([data[..., :2], data[..., j:j + 2]], dim=-1) for j in range(2, data.shape[-1], 2)]
@@ -250,6 +269,9 @@ class ProjectiveResectionModel:
     def __init__(self, scale: float = 1.0) -> None:
         self.scale = scale
 
+    def restricted(self, problems: Tensor) -> ProjectiveResectionModel:
+        return self  # nothing per problem
+
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         P = projective_resection(samples[..., :4], samples[..., 4:])
         return P, torch.isfinite(P).flatten(-2).all(-1)
@@ -262,3 +284,12 @@ class ProjectiveResectionModel:
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., 4:]
+
+
+def _restricted(model, problems: Tensor, *per_problem: str):
+    """A shallow copy of ``model`` whose (B, ...) attributes ``per_problem`` keep the rows
+    ``problems`` (P,) only."""
+    subset = copy.copy(model)
+    for name in per_problem:
+        setattr(subset, name, getattr(model, name)[problems])
+    return subset

@@ -42,6 +42,10 @@ class RobustModel(Protocol):
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         """(B, N, 2) image positions the bucketed sampler uses."""
 
+    def restricted(self, problems: Tensor) -> RobustModel:
+        """The same model for the problems (P,) of the batch only (the rounds after some problems
+        have stopped run on the others alone)."""
+
 
 def inlier_count_score(squared_residuals: Tensor, inliers: Tensor, threshold_sq: float) -> Tensor:
     """Number of inliers (thesis): (B, H, N) -> (B, H)."""
@@ -98,7 +102,10 @@ def ransac(
     ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
     problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
     while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
-    sees the inlier ratio of a refined model.
+    sees the inlier ratio of a refined model. A problem stops drawing once its adaptive trial
+    count is reached; later rounds run on the problems still drawing only (the model plug-in's
+    ``restricted``), so a batch costs about what its problems cost one at a time, not its
+    slowest problem times B.
 
     Args:
         model: the estimator plug-in (see :class:`RobustModel`).
@@ -124,16 +131,15 @@ def ransac(
     sampler = SAMPLERS[config.sampler](model.sampling_coordinates(data), valid, config.grid_size)
     preemptive = 0 < config.preemptive_points < N
     subset_sampler = UniformSampler(data, valid) if preemptive else None
-    batch = torch.arange(B, device=device)
 
-    def evaluate(models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor) -> tuple[Tensor, Tensor]:
-        residuals = torch.nan_to_num(model.residuals(models, rows), nan=float("inf"))  # (B, H, N)
+    def evaluate(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor) -> tuple[Tensor, Tensor]:
+        residuals = torch.nan_to_num(model.residuals(models, rows), nan=float("inf"))  # (P, H, N)
         inliers = (residuals < threshold_sq) & rows_valid[:, None, :] & ok[..., None]
         score = torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf"))
         return score, inliers.sum(-1)
 
     best_model: Tensor | None = None
-    best_score = torch.full((B,), float("-inf"), device=device)
+    best_score = torch.full((B,), float("-inf"), dtype=torch.float64, device=device)
     best_count = torch.zeros(B, dtype=torch.long, device=device)
     trials = torch.zeros(B, dtype=torch.long, device=device)
     needed = torch.full((B,), config.max_trials, dtype=torch.long, device=device)
@@ -145,31 +151,40 @@ def ransac(
             break
         num_samples = min(remaining, round_size)
         round_size = min(2 * round_size, config.hypotheses_per_round)
-        indices = sampler.sample(num_samples, s, generator)  # (B, K, s)
-        samples = torch.gather(data[:, None].expand(B, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))
-        models, ok = model.fit_minimal(samples)  # (B, H, *M), (B, H)
+        # the round runs on the problems still drawing only: a batch costs what its open problems cost
+        live = torch.nonzero(active).flatten()  # (P,)
+        everyone = live.numel() == B
+        live_model, live_data, live_valid = (model, data, valid) if everyone else (model.restricted(live), data[live], valid[live])
+        P = live.numel()
+        rows_of = torch.arange(P, device=device)
+        indices = sampler.sample(num_samples, s, generator, None if everyone else live)  # (P, K, s)
+        samples = torch.gather(live_data[:, None].expand(P, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))
+        models, ok = live_model.fit_minimal(samples)  # (P, H, *M), (P, H)
         if preemptive and models.shape[1] > 1:
-            subset = subset_sampler.sample(1, config.preemptive_points, generator)[:, 0]  # (B, m)
-            rows = torch.gather(data, 1, subset[..., None].expand(B, subset.shape[1], D))
-            partial, _ = evaluate(models, ok, rows, torch.gather(valid, 1, subset))
+            subset = subset_sampler.sample(1, config.preemptive_points, generator, None if everyone else live)[:, 0]  # (P, m)
+            rows = torch.gather(live_data, 1, subset[..., None].expand(P, subset.shape[1], D))
+            partial, _ = evaluate(live_model, models, ok, rows, torch.gather(live_valid, 1, subset))
             keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
-            models, ok = models[batch[:, None], keep], ok[batch[:, None], keep]
-        score, count = evaluate(models, ok, data, valid)
+            models, ok = models[rows_of[:, None], keep], ok[rows_of[:, None], keep]
+        score, count = evaluate(live_model, models, ok, live_data, live_valid)
         round_score, round_best = score.max(dim=1)
-        improved = active & (round_score > best_score)
-        chosen = models[batch, round_best]
-        best_model = chosen if best_model is None else _where_batch(improved, chosen, best_model)
-        best_score = torch.where(improved, round_score, best_score)
-        best_count = torch.where(improved, count[batch, round_best], best_count)
+        improved = round_score > best_score[live]  # (P,)
+        chosen = models[rows_of, round_best]
+        if best_model is None:  # problems that never draw keep zeros (they have fewer than s rows: no inliers)
+            best_model = chosen.new_zeros(B, *chosen.shape[1:])
+        current = _where_batch(improved, chosen, best_model[live])
+        current_score = torch.where(improved, round_score, best_score[live])
+        current_count = torch.where(improved, count[rows_of, round_best], best_count[live])
         for _ in range(config.local_refits if bool(improved.any()) else 0):
-            inliers = _inliers(model, best_model, data, valid, threshold_sq)
-            refit = model.fit_weighted(data, inliers.to(data.dtype))
-            score, count = evaluate(refit[:, None], (improved & (best_count >= s))[:, None], data, valid)
-            better = improved & (score[:, 0] >= best_score)
-            best_model = _where_batch(better, refit, best_model)
-            best_score = torch.where(better, score[:, 0], best_score)
-            best_count = torch.where(better, count[:, 0], best_count)
-        trials = trials + torch.where(active, num_samples, 0)
+            inliers = _inliers(live_model, current, live_data, live_valid, threshold_sq)
+            refit = live_model.fit_weighted(live_data, inliers.to(data.dtype))
+            score, count = evaluate(live_model, refit[:, None], (improved & (current_count >= s))[:, None], live_data, live_valid)
+            better = improved & (score[:, 0] >= current_score)
+            current = _where_batch(better, refit, current)
+            current_score = torch.where(better, score[:, 0], current_score)
+            current_count = torch.where(better, count[:, 0], current_count)
+        best_model[live], best_score[live], best_count[live] = current, current_score.double(), current_count
+        trials[live] += num_samples
         ratio = best_count.double() / num_valid.clamp_min(1).double()
         needed = required_trials(ratio, s, config.confidence, config.max_trials)
         active = active & (trials < needed)

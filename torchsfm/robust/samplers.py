@@ -37,10 +37,13 @@ class UniformSampler:
     def __init__(self, coordinates: Tensor, valid: Tensor, grid_size: int = 8) -> None:
         self.weights = valid.float()  # (B, N)
 
-    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None) -> Tensor:
-        """(B, num_samples, sample_size) indices of distinct valid points."""
-        B, N = self.weights.shape
-        return _weighted_top_k(self.weights[:, None, :].expand(B, num_samples, N), sample_size, generator)
+    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None,
+               problems: Tensor | None = None) -> Tensor:
+        """(P, num_samples, sample_size) indices of distinct valid points of the problems
+        ``problems`` (P,) (default: all B)."""
+        weights = self.weights[slice(None) if problems is None else problems]
+        P, N = weights.shape
+        return _weighted_top_k(weights[:, None, :].expand(P, num_samples, N), sample_size, generator)
 
 
 class BucketedSampler:
@@ -76,21 +79,25 @@ class BucketedSampler:
         self.occupied = (self.counts > 0).sum(dim=1)  # (B,)
         self.uniform = UniformSampler(coordinates, valid)
 
-    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None) -> Tensor:
-        """(B, num_samples, sample_size) indices of distinct points from distinct buckets."""
-        B, G = self.counts.shape
-        buckets = _weighted_top_k(self.counts[:, None, :].float().expand(B, num_samples, G), sample_size, generator)
-        flat = buckets.reshape(B, -1)
-        counts = torch.gather(self.counts, 1, flat)
-        starts = torch.gather(self.starts, 1, flat)
+    def sample(self, num_samples: int, sample_size: int, generator: torch.Generator | None,
+               problems: Tensor | None = None) -> Tensor:
+        """(P, num_samples, sample_size) indices of distinct points from distinct buckets of the
+        problems ``problems`` (P,) (default: all B)."""
+        rows = slice(None) if problems is None else problems
+        bucket_counts, bucket_starts, order, occupied = self.counts[rows], self.starts[rows], self.order[rows], self.occupied[rows]
+        P, G = bucket_counts.shape
+        buckets = _weighted_top_k(bucket_counts[:, None, :].float().expand(P, num_samples, G), sample_size, generator)
+        flat = buckets.reshape(P, -1)
+        counts = torch.gather(bucket_counts, 1, flat)
+        starts = torch.gather(bucket_starts, 1, flat)
         u = torch.rand(flat.shape, generator=generator, device=flat.device)
         offset = (u * counts).long().clamp_max(counts - 1).clamp_min(0)
         # an empty bucket (drawn only when fewer than s are occupied: replaced below) must not index past the end
-        position = (starts + offset).clamp_max(self.order.shape[1] - 1)
-        indices = torch.gather(self.order, 1, position).reshape(B, num_samples, sample_size)
-        too_few_buckets = self.occupied < sample_size
+        position = (starts + offset).clamp_max(order.shape[1] - 1)
+        indices = torch.gather(order, 1, position).reshape(P, num_samples, sample_size)
+        too_few_buckets = occupied < sample_size
         if bool(too_few_buckets.any()):
-            fallback = self.uniform.sample(num_samples, sample_size, generator)
+            fallback = self.uniform.sample(num_samples, sample_size, generator, problems)
             indices = torch.where(too_few_buckets[:, None, None], fallback, indices)
         return indices
 

@@ -17,7 +17,6 @@ similarity, over every pair up to ``exhaustive_up_to`` views.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -29,7 +28,10 @@ from torchsfm.features.harris import detect_corners
 from torchsfm.images import to_unit_float
 from torchsfm.matching.ncc import extract_patches
 from torchsfm.robust.models import HomographyModel
+from torchsfm.robust.ragged import pad_rows
 from torchsfm.robust.ransac import ransac
+
+HOMOGRAPHY_BATCH = 32  # view pairs per batched RANSAC call of the coarse homographies
 
 
 @dataclass
@@ -86,67 +88,86 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     return scores + scores.T
 
 
-def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int,
-                 coarse_inliers: Callable[[int, int], int] | None = None) -> list[tuple[int, int]]:
-    """View pairs (i < j) of ``num_views`` to verify, from the coarse scores (V, V) and
-    ``config.mode`` (``sequential`` and ``exhaustive`` need no scores: None).
+def considered_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> list[tuple[int, int]]:
+    """The view pairs (i < j) that ``config.mode`` considers: ``sequential`` the window (i, i + d),
+    d = 1 .. ``window``, ``exhaustive`` every pair (both final, no scores needed: None);
+    ``similarity`` (and ``auto`` beyond ``exhaustive_up_to`` views) the window and each view's
+    ``neighbours`` best-scoring partners by the coarse scores (V, V); ``auto`` up to
+    ``exhaustive_up_to`` views every pair."""
+    V = num_views
+    pairs = [(i, j) for i in range(V) for j in range(i + 1, V)]
+    window = {(i, i + d) for d in range(1, config.window + 1) for i in range(V - d)}
+    if config.mode == "exhaustive" or (config.mode == "auto" and V <= config.exhaustive_up_to):
+        return pairs
+    if config.mode == "sequential":
+        return sorted(window)
+    return sorted(window | _best_partners(scores, config))
 
-    ``similarity`` (and ``auto`` beyond ``exhaustive_up_to`` views) considers the sequential
-    window and each view's ``neighbours`` best-scoring partners; ``auto`` up to
-    ``exhaustive_up_to`` views considers every pair. A considered pair needs ``min_score``
-    mutual-best matches and, where ``coarse_inliers(i, j)`` is given, that many inliers of its
-    coarse homography: views that show nothing in common still share chance mutual-best matches
+
+def select_pairs(scores: Tensor | None, config: PairsConfig, num_views: int,
+                 coarse_inliers: dict[tuple[int, int], int] | None = None) -> list[tuple[int, int]]:
+    """View pairs (i < j) of ``num_views`` to verify: the :func:`considered_pairs` that have
+    ``min_score`` coarse mutual-best matches (``scores`` (V, V)) and, where ``coarse_inliers`` is
+    given, that many inliers of their coarse homography (``sequential`` and ``exhaustive``: all
+    considered pairs). Views that show nothing in common still share chance mutual-best matches
     (dozens on a textured facade), but no homography joins more than a handful of them, so the
     geometric count is the one that tells related pairs apart. A view left without any pair falls
     back to its best-scoring partners (the score alone), so no view loses the pairs it had."""
-    V = num_views
-    pairs = [(i, j) for i in range(V) for j in range(i + 1, V)]
-    if config.mode == "exhaustive":
-        return pairs
-    window = {(i, i + d) for d in range(1, config.window + 1) for i in range(V - d)}
-    if config.mode == "sequential":
-        return sorted(window)
-    ranked = torch.argsort(scores, dim=1, descending=True)[:, : config.neighbours]
-    partners = {(min(i, j), max(i, j)) for i in range(V) for j in ranked[i].tolist() if j != i}
-    considered = pairs if config.mode == "auto" and V <= config.exhaustive_up_to else sorted(window | partners)
-    scored = [(i, j) for i, j in considered if int(scores[i, j]) >= config.min_score]
-    chosen = {pair for pair in scored if coarse_inliers is None or coarse_inliers(*pair) >= config.min_score}
-    for i in set(range(V)) - {v for pair in chosen for v in pair}:
-        chosen |= {pair for pair in partners if i in pair and int(scores[pair]) >= config.min_score}
+    considered = considered_pairs(scores, config, num_views)
+    if config.mode in ("sequential", "exhaustive"):
+        return considered
+    scored = [pair for pair in considered if int(scores[pair]) >= config.min_score]
+    chosen = {pair for pair in scored if coarse_inliers is None or coarse_inliers[pair] >= config.min_score}
+    partners = _best_partners(scores, config)
+    for v in set(range(num_views)) - {v for pair in chosen for v in pair}:
+        chosen |= {pair for pair in partners if v in pair and int(scores[pair]) >= config.min_score}
     return sorted(chosen)
+
+
+def _best_partners(scores: Tensor, config: PairsConfig) -> set[tuple[int, int]]:
+    """Each view's ``neighbours`` best-scoring partners, as pairs (i < j)."""
+    ranked = torch.argsort(scores, dim=1, descending=True)[:, : config.neighbours]
+    return {(min(i, j), max(i, j)) for i in range(scores.shape[0]) for j in ranked[i].tolist() if j != i}
 
 
 def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generator | None = None,
                    guided: bool = False) -> dict[tuple[int, int], Tensor | None]:
     """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
-    coarse features), each with its coarse homography (:func:`coarse_homography`) where
-    ``guided`` asks for it (None otherwise, and where none holds). Each pair's homography is
-    fitted once, for the selection and the guidance alike."""
+    coarse features), each with its coarse homography (:func:`coarse_homographies`) where
+    ``guided`` asks for it (None otherwise, and where none holds). The considered pairs'
+    homographies are fitted once, for the selection and the guidance alike."""
     features = coarse_features(greys, config)
-    fitted: dict[tuple[int, int], tuple[Tensor | None, int]] = {}
-
-    def fit(i: int, j: int) -> tuple[Tensor | None, int]:
-        if (i, j) not in fitted:
-            fitted[(i, j)] = coarse_homography(features, i, j, config, generator)
-        return fitted[(i, j)]
-
     scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
-    chosen = select_pairs(scores, config, greys.shape[0], lambda i, j: fit(i, j)[1])
-    return {(i, j): fit(i, j)[0] if guided else None for i, j in chosen}
+    considered = considered_pairs(scores, config, greys.shape[0])
+    homographies, inliers = {}, None
+    if guided or scores is not None:
+        homographies, inliers = coarse_homographies(features, considered, config, generator)
+    return {pair: homographies.get(pair) if guided else None for pair in select_pairs(scores, config, greys.shape[0], inliers)}
 
 
-def coarse_homography(features: CoarseFeatures, i: int, j: int, config: PairsConfig,
-                      generator: torch.Generator | None = None) -> tuple[Tensor | None, int]:
-    """The homography (3, 3) mapping view i's pixels to view j's, fitted by RANSAC to the coarse
-    mutual-best matches, and its number of inliers; the homography is None if it has fewer than
-    ``min_score`` inliers."""
-    ki, kj = features.valid[i], features.valid[j]
-    ncc = features.patches[i][ki] @ features.patches[j][kj].T
-    a, b = _mutual_best(ncc, config.ncc_threshold)
-    if a.numel() < config.min_score:
-        return None, int(a.numel())
-    data = torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1)[None]
-    found = ransac(HomographyModel(data), data, RansacConfig(inlier_threshold=config.homography_threshold, max_trials=2000),
-                   generator=generator)
-    inliers = int(found.inlier_mask.sum())
-    return (found.model[0] if inliers >= config.min_score else None), inliers
+def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
+                        generator: torch.Generator | None = None
+                        ) -> tuple[dict[tuple[int, int], Tensor | None], dict[tuple[int, int], int]]:
+    """Per view pair (i, j), the homography (3, 3) mapping view i's pixels to view j's, fitted by
+    RANSAC to the coarse mutual-best matches (None with fewer than ``min_score`` inliers), and its
+    number of inliers (the number of matches where too few to fit). The fits run as ragged
+    batches of ``HOMOGRAPHY_BATCH`` pairs (one RANSAC call each)."""
+    matches = []
+    for i, j in pairs:
+        ki, kj = features.valid[i], features.valid[j]
+        a, b = _mutual_best(features.patches[i][ki] @ features.patches[j][kj].T, config.ncc_threshold)
+        matches.append(torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1))
+    homographies = dict.fromkeys(pairs)
+    inliers = {pair: rows.shape[0] for pair, rows in zip(pairs, matches)}
+    fitted = [k for k, rows in enumerate(matches) if rows.shape[0] >= config.min_score]
+    ransac_config = RansacConfig(inlier_threshold=config.homography_threshold, max_trials=2000)
+    for first in range(0, len(fitted), HOMOGRAPHY_BATCH):
+        chunk = fitted[first:first + HOMOGRAPHY_BATCH]
+        data, valid = pad_rows([matches[k] for k in chunk])
+        found = ransac(HomographyModel(data, valid), data, ransac_config, valid=valid, generator=generator)
+        for row, k in enumerate(chunk):
+            count = int(found.inlier_mask[row].sum())
+            inliers[pairs[k]] = count
+            if count >= config.min_score and bool(found.success[row]):
+                homographies[pairs[k]] = found.model[row]
+    return homographies, inliers

@@ -1,0 +1,16 @@
+"""Ragged batches: problems of different sizes as one padded tensor and a validity mask, the form
+every estimator and the RANSAC engine take."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def pad_rows(rows: list[Tensor]) -> tuple[Tensor, Tensor]:
+    """B row sets (N_b, D) -> zero-padded (B, max N_b, D) and the (B, max N_b) bool mask of real rows."""
+    counts = torch.tensor([r.shape[0] for r in rows], device=rows[0].device)
+    valid = torch.arange(int(counts.max()), device=counts.device)[None] < counts[:, None]
+    data = rows[0].new_zeros(*valid.shape, rows[0].shape[-1])
+    data[valid] = torch.cat(rows)
+    return data, valid

@@ -9,8 +9,12 @@ their pose from E = Kᵀ F K through torchsfm's decomposition and cheirality tes
 errors measure the F. The last column is each method's time over torchsfm's (estimate_fundamental
 for F methods, estimate_relative_pose for pose methods); > 1 means torchsfm is faster.
 
+Then batches: B problems (B = 16, 64, 256 scenes) in one ``estimate_fundamental`` call against
+OpenCV USAC_MAGSAC one problem at a time on the same scenes: milliseconds per problem, median
+recall / precision / epipolar error over the problems, and OpenCV's time per problem over ours.
+
     pip install -e .[bench]
-    python benchmarks/two_view.py [--scenes 10] [--threads 2]
+    python benchmarks/two_view.py [--scenes 10] [--threads 2] [--batches 16,64,256]
 """
 
 from __future__ import annotations
@@ -166,10 +170,39 @@ def evaluate(method: Method, scenes: list[TwoViewScene]) -> dict[str, float]:
             "epipolar_px": median(epipolar), "R_deg": median(rotation), "t_deg": median(translation)}
 
 
+def batch_rows(outliers: float, sizes: list[int]) -> None:
+    """One batched estimate_fundamental call per size against OpenCV one problem at a time."""
+    try:
+        import cv2
+    except ImportError as error:
+        print(f"OpenCV not installed ({error}): no batch comparison")
+        return
+    scenes = [synthetic_two_view(1000, noise=0.5, outlier_ratio=outliers, seed=seed) for seed in range(max(sizes))]
+    print(f"\n{outliers:.0%} outliers, batches (per problem, medians over the problems)")
+    print(f"{'B':>4s} {'ours ms':>8s} {'OpenCV ms':>9s} {'ours/OpenCV':>11s} {'recall':>7s} {'precis.':>7s} {'epi px':>7s}")
+    for B in sizes:
+        batch = scenes[:B]
+        x1, x2 = torch.stack([scene.x1 for scene in batch]), torch.stack([scene.x2 for scene in batch])
+        torchsfm.estimate_fundamental(x1[:2], x2[:2])  # warm-up
+        start = time.perf_counter()
+        result = torchsfm.estimate_fundamental(x1, x2, generator=torch.Generator().manual_seed(0))
+        ours = (time.perf_counter() - start) / B
+        start = time.perf_counter()
+        for scene in batch:
+            cv2.findFundamentalMat(scene.x1.numpy(), scene.x2.numpy(), cv2.USAC_MAGSAC, THRESHOLD, CONFIDENCE, MAX_TRIALS)
+        opencv = (time.perf_counter() - start) / B
+        figures = [mask_recall_precision(result.inlier_mask[b], scene.is_inlier) for b, scene in enumerate(batch)]
+        epipolar = [symmetric_epipolar_distance(result.F[b], scene.x1_true, scene.x2_true).median().item() for b, scene in enumerate(batch)]
+        median = statistics.median
+        print(f"{B:4d} {1000 * ours:8.2f} {1000 * opencv:9.2f} {ours / opencv:11.2f} {median(r for r, _ in figures):7.3f} "
+              f"{median(p for _, p in figures):7.3f} {median(epipolar):7.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--batches", default="16,64,256", help="batch sizes (empty: none)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     methods: dict[str, Method] = {"torchsfm estimate_fundamental": torchsfm_fundamental,
@@ -191,6 +224,9 @@ def main() -> None:
             reference = results["torchsfm estimate_relative_pose" if is_pose else "torchsfm estimate_fundamental"]["time_ms"]
             print(f"{name:36s} {row['time_ms']:8.1f} {row['recall']:7.3f} {row['precision']:7.3f} {row['epipolar_px']:7.3f} "
                   f"{row['R_deg']:7.3f} {row['t_deg']:7.3f} {row['time_ms'] / reference:9.2f}")
+    for outliers in (0.3, 0.6):
+        if args.batches:
+            batch_rows(outliers, [int(size) for size in args.batches.split(",")])
 
 
 if __name__ == "__main__":

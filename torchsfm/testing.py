@@ -118,9 +118,16 @@ def synthetic_two_view(
 
     num_outliers = int(round(outlier_ratio * num_points))
     is_inlier = torch.ones(num_points, dtype=torch.bool)
-    outliers = torch.randperm(num_points, generator=generator)[:num_outliers]
-    is_inlier[outliers] = False
     F = fundamental_from_pose(K, K, R, t)
+    # every epipolar line of image 1 passes through its epipole, so a point that close to it has
+    # no x2 far from its line: it cannot be made an outlier
+    epipole = torch.linalg.svd(F).Vh[-1]
+    placeable = torch.ones(num_points, dtype=torch.bool)
+    if float(epipole[2].abs()) > 1e-12:
+        placeable = (x1 - epipole[:2] / epipole[2]).norm(dim=-1) >= min_outlier_distance
+    order = torch.randperm(num_points, generator=generator)
+    outliers = order[placeable[order]][:num_outliers]
+    is_inlier[outliers] = False
     pending = outliers
     while pending.numel():
         x2[pending] = _uniform((pending.numel(), 2), 0.0, 1.0, generator) * torch.tensor([width - 1, height - 1], dtype=torch.float64)

@@ -309,6 +309,9 @@ class PairsConfig:
     inliers) centres the full-resolution search disc of every corner on its predicted position;
     with ``warp_patches``, each corner's NCC patch is also warped by the homography's local
     affine map, so rotation, scale and foreshortening between the views are undone.
+    ``epipolar_matching``: when views stay unregistered, their verified pairs are matched again
+    with the epipolar band (Sampson distance within the F inlier threshold) in place of the disc,
+    and the mapping runs again.
     ``matcher``: ``ncc`` (the thesis' Harris corners and NCC + strength measure, above) or
     ``sift`` (Kornia's SIFT: ``sift_features`` scale-space keypoints per view, RootSIFT
     descriptors, mutual nearest neighbours passing Lowe's ratio test at ``sift_ratio``; the same
@@ -327,6 +330,7 @@ class PairsConfig:
     homography_threshold: float = 8.0
     guided: bool = True
     warp_patches: bool = True
+    epipolar_matching: bool = True
     matcher: str = "ncc"
     sift_features: int = 4000
     sift_ratio: float = 0.8

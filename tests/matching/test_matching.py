@@ -116,3 +116,19 @@ def test_affine_warped_patches_match_through_rotation_and_scale():
 
     plain, warped = correct(None), correct(patch_warps(H, points1))
     assert plain < 50 and warped > 600
+
+
+def test_chance_equivalent_threshold_keeps_the_chance_candidates_per_corner():
+    """A table of chance scores: candidates among a tenth of the pairs need a lower score, and
+    above it they are about as many as above 0.8 among all pairs; never above 0.8."""
+    from torchsfm.matching.ncc import chance_equivalent_threshold
+
+    ncc = torch.rand(400, 500, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 2 - 1
+    everything = torch.ones_like(ncc, dtype=torch.bool)
+    tenth = torch.zeros_like(everything)
+    tenth[:, :50] = True
+    threshold = chance_equivalent_threshold(ncc, everything, tenth, 0.8)
+    assert threshold < 0.8
+    in_tenth, in_all = int((ncc[tenth] > threshold).sum()), int((ncc > 0.8).sum())
+    assert abs(in_tenth - in_all) <= 0.25 * in_all  # uniform chance scores: 0.8 -> about -0.2
+    assert chance_equivalent_threshold(ncc, tenth, everything, 0.8) == 0.8

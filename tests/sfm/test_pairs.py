@@ -68,3 +68,18 @@ def test_bad_mode_is_named():
 
     with pytest.raises(ConfigError, match="mode"):
         PairsConfig(mode="random")
+
+
+def test_epipolar_band_holds_the_points_on_their_lines():
+    """Noise-free correspondences lie in the band of their F; moved 3 px across the line they do not."""
+    from torchsfm.geometry.fundamental import fundamental_from_pose
+    from torchsfm.sfm.view_pairs import epipolar_band
+    from torchsfm.testing import synthetic_two_view
+
+    scene = synthetic_two_view(50, seed=1)
+    F = fundamental_from_pose(scene.K1, scene.K2, scene.R, scene.t)
+    band = epipolar_band(F, scene.x1, scene.x2, 1.0)
+    assert bool(band.diagonal().all())
+    line = torch.cat([scene.x1, torch.ones(50, 1, dtype=torch.float64)], -1) @ F.T  # lines F x1 in image 2
+    across = scene.x2 + 3.0 * line[:, :2] / line[:, :2].norm(dim=-1, keepdim=True)
+    assert not bool(epipolar_band(F, scene.x1, across, 1.0).diagonal().any())

@@ -37,7 +37,7 @@ class OnlyConsecutivePairs(nn.Module):
 
     def forward(self, state: ViewSet) -> ViewSet:
         self.calls += 1
-        matches = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
+        matches, _ = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
         state.putative = {pair: m for pair, m in matches.items() if pair[1] == pair[0] + 1}
         return state
 

@@ -35,7 +35,14 @@ def match_corners(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tens
     ``predicted1`` (N1, 2) centres the search discs and ``warp1`` (N1, 2, 2) warps image 1's
     patches (see :func:`ncc_candidates`)."""
     config = config or MatchingConfig()
-    candidates = ncc_candidates(image1, image2, points1, points2, config, predicted1, warp1)
+    return match_candidates(points1, points2, ncc_candidates(image1, image2, points1, points2, config, predicted1, warp1), config)
+
+
+def match_candidates(points1: Tensor, points2: Tensor, candidates: CandidateMatches,
+                     config: MatchingConfig | None = None) -> PutativeMatches:
+    """One-to-one matches of corners (N1, 2), (N2, 2) from a candidate set: the strength measure
+    (or NCC alone) and relaxation (Algorithm 3.2.2, steps 2-3)."""
+    config = config or MatchingConfig()
     strength = strength_measure(points1, points2, candidates, config) if config.strength == "sm" else candidates.score
     index1, index2 = relaxation(candidates, strength, (points1.shape[0], points2.shape[0]), config)
     return PutativeMatches(index1=index1, index2=index2, candidates=candidates, strength=strength)

@@ -80,11 +80,35 @@ def ncc_candidates(image1: Tensor, image2: Tensor, points1: Tensor, points2: Ten
         :class:`CandidateMatches`.
     """
     config = config or MatchingConfig()
-    patches1 = extract_patches(image1, points1, config.patch_half_size, warp1)
-    patches2 = extract_patches(image2, points2, config.patch_half_size)
-    ncc = patches1 @ patches2.T  # (N1, N2): eq. 3.2.4 (the (2n+1)² σσ normalization is in the unit norms)
+    ncc = ncc_table(image1, image2, points1, points2, config.patch_half_size, warp1)
     centres = points1 if predicted1 is None else predicted1.to(points1.dtype)
-    inside = torch.cdist(centres, points2) < config.search_radius
-    ncc = torch.where(inside, ncc, float("-inf"))
-    index1, index2 = torch.nonzero(ncc > config.ncc_threshold, as_tuple=True)
+    return select_candidates(ncc, torch.cdist(centres, points2) < config.search_radius, config.ncc_threshold)
+
+
+def ncc_table(image1: Tensor, image2: Tensor, points1: Tensor, points2: Tensor, half_size: int,
+              warp1: Tensor | None = None) -> Tensor:
+    """(N1, N2) NCC of every corner pair (eq. 3.2.4; the (2n+1)² σσ normalization is in the
+    patches' unit norms): one matrix product. ``warp1`` as in :func:`ncc_candidates`."""
+    return extract_patches(image1, points1, half_size, warp1) @ extract_patches(image2, points2, half_size).T
+
+
+def select_candidates(ncc: Tensor, allowed: Tensor, threshold: float) -> CandidateMatches:
+    """The pairs of an (N1, N2) NCC table that ``allowed`` (N1, N2) admits and that score above
+    ``threshold``."""
+    ncc = torch.where(allowed, ncc, float("-inf"))
+    index1, index2 = torch.nonzero(ncc > threshold, as_tuple=True)
     return CandidateMatches(index1=index1, index2=index2, score=ncc[index1, index2], ncc=ncc)
+
+
+def chance_equivalent_threshold(ncc: Tensor, reference: Tensor, allowed: Tensor, threshold: float) -> float:
+    """The NCC threshold at which a corner's candidates among ``allowed`` (N1, N2) pairs are chance
+    ones no more often than its candidates above ``threshold`` among ``reference`` pairs (e.g. an
+    epipolar band against the search disc: far fewer pairs, so a lower score suffices).
+
+    Chance scores are the table's entries without each row's best (where most true matches
+    are); the result is the score they exceed as often as they exceed ``threshold``, times
+    |reference| / |allowed|; never above ``threshold``."""
+    chance = ncc.scatter(1, ncc.argmax(1, keepdim=True), float("-inf")).flatten()
+    rate = float((chance > threshold).double().mean()) * float(reference.sum()) / max(float(allowed.sum()), 1.0)
+    count = min(max(1, round(rate * chance.numel())), chance.numel())
+    return min(threshold, float(torch.topk(chance, count).values[-1]))

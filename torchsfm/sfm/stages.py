@@ -14,7 +14,7 @@ config sections it uses.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor, nn
@@ -30,8 +30,8 @@ from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.sfm.pipeline import ConfiguredStage, Pipeline
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, image_centre, putative_matches, reject_moving_tracks, self_calibrate,
-                                     verify_pairs)
+from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
+                                     self_calibrate, verify_pairs)
 
 
 
@@ -49,7 +49,8 @@ class ViewSet:
         generator: the random source of every RANSAC; report: progress messages.
         greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
             the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``);
-            putative: matched corner indices (index1, index2) per view pair; pairs: verified matches;
+            putative: matched corner indices (index1, index2) per view pair; homographies: each
+            matched pair's coarse homography (or None); pairs: verified matches;
             tracks; rejections, rejected_per_view: the moving-object decision; all_tracks,
             track_labels: with ``moving_objects.reconstruct_objects``, the tracks before the
             decision and each one's rigid-motion label (T,) (0 the static scene, 1..k the moving
@@ -68,6 +69,7 @@ class ViewSet:
     raw: list[Tensor] | None = None
     corners: list[Tensor] | None = None
     putative: dict[tuple[int, int], tuple[Tensor, Tensor]] | None = None
+    homographies: dict[tuple[int, int], Tensor | None] = field(default_factory=dict)
     pairs: dict[tuple[int, int], PairMatches] | None = None
     tracks: Tracks | None = None
     rejections: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
@@ -107,10 +109,10 @@ class DetectCorners(ConfiguredStage):
 
 class MatchPairs(ConfiguredStage):
     """Coarse matching of every view pair, pair selection and guided NCC + strength-measure
-    matches of the chosen pairs: fills ``putative``."""
+    matches of the chosen pairs: fills ``putative`` and ``homographies``."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.putative = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
+        state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
         return state
 
 
@@ -164,6 +166,29 @@ class RejectMovingObjects(ConfiguredStage):
         return state
 
 
+class RematchUnregistered(ConfiguredStage):
+    """When views stay unregistered (``pairs.epipolar_matching``): the verified pairs of those
+    views and of their partners (the tracks through a partner link a view to the model) are
+    matched again in their epipolar bands (:func:`epipolar_matches`), and the tracks,
+    the moving-object decision and the mapping run again; the model that registers more views is
+    kept. Costs nothing where every view registers."""
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        missing = set(state.reconstruction.unregistered)
+        linked = {v for key in state.pairs if missing & set(key) for v in key}  # the missing views and their partners
+        weak = {key: m for key, m in state.pairs.items() if linked & set(key)}
+        if not weak:
+            return state
+        state.report(f"{len(missing)} views unregistered: matching {len(weak)} verified pairs of them and their partners along epipolar lines")
+        rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
+        retry = Pipeline(BuildTracks(), RejectMovingObjects(self.config), MapIncrementally(self.config))
+        second = retry(replace(state, pairs={**state.pairs, **rematched}))
+        better = len(second.reconstruction.view_indices) > len(state.reconstruction.view_indices)
+        state.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
+                     + ("kept" if better else "the first model kept"))
+        return second if better else state
+
+
 class MapIncrementally(ConfiguredStage):
     """Initial pair, resection and triangulation of every next view, bundle adjustment (and, when
     K was estimated, its refinement): fills ``reconstruction``."""
@@ -178,7 +203,8 @@ class MapIncrementally(ConfiguredStage):
 def default_pipeline(config: Config | None = None) -> Pipeline:
     """The stages of :func:`torchsfm.reconstruct` (SIFT's two first with ``pairs.matcher`` ``sift``)."""
     config = config or Config()
-    features = ((DetectSiftFeatures(config), MatchSiftFeatures(config)) if config.pairs.matcher == "sift"
-                else (DetectCorners(config.harris), MatchPairs(config)))
+    sift = config.pairs.matcher == "sift"
+    features = (DetectSiftFeatures(config), MatchSiftFeatures(config)) if sift else (DetectCorners(config.harris), MatchPairs(config))
+    rematch = (RematchUnregistered(config),) if config.pairs.epipolar_matching and not sift else ()
     return Pipeline(*features, VerifyPairs(config), SelfCalibrate(config), BuildTracks(), RejectMovingObjects(config),
-                    MapIncrementally(config))
+                    MapIncrementally(config), *rematch)

@@ -1,9 +1,10 @@
 """Real-world input: photo sets in any order, wide baselines, driving video, unknown focal length.
 
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
-shuffled order (a fixed seeded permutation) and with every third view only (wide baselines); the
-KITTI odometry 06 excerpt (51 frames, forward motion); and, where ``--no-K`` is given, the same
-without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
+shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
+fountain views 8, 0, 4 (about 20 degrees apart, out of order); the KITTI odometry 06 excerpt
+(51 frames, forward motion), every third frame of it, and its frames shuffled; and, where
+``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
 maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
@@ -36,6 +37,7 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 def cases(data: Path) -> dict[str, StrechaSequence]:
     fountain, herzjesu = read_strecha(data / "strecha_fountain_P11"), read_strecha(data / "strecha_herzjesu_P8")
+    kitti = read_kitti_odometry(data / "kitti_odom_seq06_000-050")
     shuffle = lambda n: torch.randperm(n, generator=torch.Generator().manual_seed(7)).tolist()  # noqa: E731
     return {
         "fountain": fountain,
@@ -44,7 +46,10 @@ def cases(data: Path) -> dict[str, StrechaSequence]:
         "herzjesu": herzjesu,
         "herzjesu_shuffled": subset(herzjesu, shuffle(8)),
         "herzjesu_every3": subset(herzjesu, list(range(0, 8, 3))),
-        "kitti06": read_kitti_odometry(data / "kitti_odom_seq06_000-050"),
+        "fountain_wide": subset(fountain, [8, 0, 4]),
+        "kitti06": kitti,
+        "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
+        "kitti06_shuffled": subset(kitti, shuffle(51)),
     }
 
 

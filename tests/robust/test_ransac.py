@@ -7,7 +7,7 @@ from torch.testing import assert_close
 
 from torchsfm.config import RansacConfig
 from torchsfm.geometry.fundamental import normalize_scale, sampson_error
-from torchsfm.robust.models import FundamentalModel
+from torchsfm.robust.models import FundamentalModel, HomographyModel
 from torchsfm.robust.ransac import SCORINGS, ransac, required_trials
 from torchsfm.testing import synthetic_two_view
 
@@ -82,3 +82,25 @@ def test_same_seed_same_result():
     runs = [ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(7)) for _ in range(2)]
     assert torch.equal(runs[0].model, runs[1].model)
     assert torch.equal(runs[0].inlier_mask, runs[1].inlier_mask)
+
+
+@pytest.mark.parametrize("model_class", [FundamentalModel, HomographyModel])
+def test_a_problem_that_stops_early_in_a_batch_keeps_its_exact_answer(model_class):
+    """A batch of an outlier-free problem and an unrelated one: the first stops after one round
+    and later rounds run on the second alone (the plug-in's ``restricted``); the first keeps
+    every point, the second draws up to the cap, and the first matches its own single call."""
+    scene = synthetic_two_view(200, seed=1)
+    easy = _data(scene)
+    if model_class is HomographyModel:  # a planar scene: image 2 = a homography of image 1
+        H = torch.tensor([[1.1, 0.05, 20.0], [-0.03, 0.95, -10.0], [1e-4, 5e-5, 1.0]], dtype=torch.float64)
+        moved = torch.cat([scene.x1, torch.ones(200, 1, dtype=torch.float64)], -1) @ H.T
+        easy = torch.cat([scene.x1, moved[:, :2] / moved[:, 2:]], -1)[None]
+    unrelated = torch.rand(1, 200, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(2)) * 600
+    data = torch.cat([easy, unrelated])
+    config = RansacConfig(max_trials=300)
+    batch = ransac(model_class(data), data, config, generator=torch.Generator().manual_seed(0))
+    single = ransac(model_class(easy), easy, config, generator=torch.Generator().manual_seed(0))
+    assert batch.inlier_mask[0].all() and batch.num_trials[0] <= 32
+    assert batch.num_trials[1] == 300
+    assert torch.equal(batch.inlier_mask[0], single.inlier_mask[0])
+    assert_close(normalize_scale(batch.model[0]).abs(), normalize_scale(single.model[0]).abs(), rtol=0, atol=1e-9)

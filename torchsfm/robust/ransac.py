@@ -152,10 +152,10 @@ def ransac(
         num_samples = min(remaining, round_size)
         round_size = min(2 * round_size, config.hypotheses_per_round)
         # the round runs on the problems still drawing only: a batch costs what its open problems cost
-        live = torch.nonzero(active).flatten()  # (P,)
-        everyone = live.numel() == B
+        everyone = bool(active.all())
+        live = slice(None) if everyone else torch.nonzero(active).flatten()  # (P,) problems
         live_model, live_data, live_valid = (model, data, valid) if everyone else (model.restricted(live), data[live], valid[live])
-        P = live.numel()
+        P = live_data.shape[0]
         rows_of = torch.arange(P, device=device)
         indices = sampler.sample(num_samples, s, generator, None if everyone else live)  # (P, K, s)
         samples = torch.gather(live_data[:, None].expand(P, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))

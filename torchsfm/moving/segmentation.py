@@ -57,7 +57,7 @@ from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, samp
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
-from torchsfm.moving.static_tracks import chi2_quantile, rigid_group
+from torchsfm.moving.static_tracks import rms_bound, rigid_group
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.robust.samplers import resolve_generator
 
@@ -218,8 +218,8 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
 
 
 def _bound(sigma: Tensor, dof: Tensor, terms: Tensor, config: SegmentationConfig) -> Tensor:
-    """max(tolerance, σ·sqrt(χ²_(1−α)(dof) / terms)) per track."""
-    return (sigma.square() * chi2_quantile(dof, 1 - config.scene_significance) / terms).sqrt().clamp_min(config.scene_tolerance)
+    """:func:`rms_bound` of σ with the scene's significance and tolerance, per track."""
+    return rms_bound(sigma.square(), dof, terms, config.scene_significance, config.scene_tolerance)
 
 
 def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,

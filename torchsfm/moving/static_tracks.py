@@ -75,6 +75,13 @@ def chi2_quantile(dof: Tensor, probability: float) -> Tensor:
     return k * (1 - 2 / (9 * k) + z * torch.sqrt(2 / (9 * k))) ** 3
 
 
+def rms_bound(sigma_sq: Tensor | float, dof: Tensor, terms: Tensor, significance: float, floor: float) -> Tensor:
+    """The largest RMS residual over ``terms`` squared terms of ``dof`` degrees of freedom that
+    noise of variance ``sigma_sq`` reaches with probability 1 − ``significance``:
+    max(floor, sqrt(σ² χ²_(1−α)(dof) / terms)), per entry of dof / terms."""
+    return torch.sqrt(sigma_sq * chi2_quantile(dof, 1 - significance) / terms.clamp_min(1)).clamp_min(floor)
+
+
 def starting_frames(tracks: Tensor, visible: Tensor) -> tuple[int, int]:
     """(r, f*): the frame seeing most tracks, and the frame sharing at least half of them whose
     shared tracks moved furthest (median displacement)."""
@@ -161,8 +168,6 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         camera_valid = camera_valid & enough
         cameras = torch.where(enough[:, None, None], refit, cameras)
     rms = torch.where(tested, (sse / (2 * frames_seen).clamp_min(1)).sqrt(), torch.full_like(sse, float("inf")))
-    tolerance = torch.maximum(torch.sqrt(sigma_sq * chi2_quantile(dof, 1 - significance) / (2 * frames_seen).clamp_min(1)),
-                              torch.tensor(threshold, dtype=sse.dtype, device=sse.device))
-    group = members & tested & (rms <= tolerance)
+    group = members & tested & (rms <= rms_bound(sigma_sq, dof, 2 * frames_seen, significance, threshold))
     return RigidGroup(members=group, rms=rms, frames_seen=frames_seen, cameras=cameras, camera_valid=camera_valid,
                       reference=r, partner=partner)

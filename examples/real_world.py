@@ -2,7 +2,7 @@
 
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
-fountain views 8, 0, 4 (about 20 degrees apart, out of order); the KITTI odometry 06 excerpt
+fountain views 8, 0, 4 (about 20 degrees apart, out of order) and 0, 5, 10; the KITTI odometry 06 excerpt
 (51 frames, forward motion), every third frame of it, and its frames shuffled; and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
@@ -47,6 +47,7 @@ def cases(data: Path) -> dict[str, StrechaSequence]:
         "herzjesu_shuffled": subset(herzjesu, shuffle(8)),
         "herzjesu_every3": subset(herzjesu, list(range(0, 8, 3))),
         "fountain_wide": subset(fountain, [8, 0, 4]),
+        "fountain_every5": subset(fountain, [0, 5, 10]),
         "kitti06": kitti,
         "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
         "kitti06_shuffled": subset(kitti, shuffle(51)),

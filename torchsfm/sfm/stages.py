@@ -167,19 +167,21 @@ class RejectMovingObjects(ConfiguredStage):
 
 
 class RematchUnregistered(ConfiguredStage):
-    """When views stay unregistered (``pairs.epipolar_matching``): the verified pairs of those
-    views and of their partners (the tracks through a partner link a view to the model) are
-    matched again in their epipolar bands (:func:`epipolar_matches`), and the tracks,
-    the moving-object decision and the mapping run again; the model that registers more views is
-    kept. Costs nothing where every view registers."""
+    """When views stay unregistered although a verified pair links them to the model
+    (``pairs.epipolar_matching``): the verified pairs of those views and of their partners (the
+    tracks through a partner link a view to the model) are matched again in their epipolar
+    bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
+    run again; the model that registers more views is kept. Costs nothing where every view
+    registers, or where the others form separate groups."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        missing = set(state.reconstruction.unregistered)
-        linked = {v for key in state.pairs if missing & set(key) for v in key}  # the missing views and their partners
+        registered = set(state.reconstruction.view_indices)
+        stranded = {v for key in state.pairs for v in key if v not in registered and set(key) & registered}
+        linked = {v for key in state.pairs if stranded & set(key) for v in key}  # the stranded views and their partners
         weak = {key: m for key, m in state.pairs.items() if linked & set(key)}
         if not weak:
             return state
-        state.report(f"{len(missing)} views unregistered: matching {len(weak)} verified pairs of them and their partners along epipolar lines")
+        state.report(f"{len(stranded)} views unregistered: matching {len(weak)} verified pairs of them and their partners along epipolar lines")
         rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
         retry = Pipeline(BuildTracks(), RejectMovingObjects(self.config), MapIncrementally(self.config))
         second = retry(replace(state, pairs={**state.pairs, **rematched}))

@@ -3,7 +3,8 @@
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
 fountain views 8, 0, 4 (about 20 degrees apart, out of order) and 0, 5, 10; the KITTI odometry 06 excerpt
-(51 frames, forward motion), every third frame of it, and its frames shuffled; and, where
+(51 frames, forward motion), every third and every fifth frame of it (about 6 m apart), and its
+frames shuffled; and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
@@ -50,6 +51,7 @@ def cases(data: Path) -> dict[str, StrechaSequence]:
         "fountain_every5": subset(fountain, [0, 5, 10]),
         "kitti06": kitti,
         "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
+        "kitti06_every5": subset(kitti, list(range(0, 51, 5))),
         "kitti06_shuffled": subset(kitti, shuffle(51)),
     }
 

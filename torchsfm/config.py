@@ -361,7 +361,8 @@ class ReconstructionConfig:
     most inliers among those whose homography explains at most ``max_homography_ratio`` of the F
     inliers (``homography_threshold`` px) and whose inliers triangulate with a median angle of at
     least ``min_initial_angle`` degrees. Each next view is resected from its tracks' 3-D points
-    and needs ``min_resection_inliers``. New points need a triangulation angle of
+    and needs ``min_resection_inliers`` (the resection threshold doubles, up to
+    ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`). New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
     Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end;
@@ -382,6 +383,7 @@ class ReconstructionConfig:
     max_homography_ratio: float = 0.8
     min_initial_angle: float = 2.0
     min_resection_inliers: int = 20
+    max_resection_threshold: float = 8.0
     min_point_angle: float = 1.0
     max_reprojection_error: float = 2.0
     min_track_views: int = 2
@@ -403,6 +405,7 @@ class ReconstructionConfig:
         _require(0 < self.max_homography_ratio <= 1, "max_homography_ratio", self.max_homography_ratio, "must lie in (0, 1]")
         _require(self.min_initial_angle >= 0, "min_initial_angle", self.min_initial_angle, "must be >= 0")
         _require(self.min_resection_inliers >= 6, "min_resection_inliers", self.min_resection_inliers, "must be >= 6")
+        _require(self.max_resection_threshold > 0, "max_resection_threshold", self.max_resection_threshold, "must be > 0")
         _require(self.min_point_angle >= 0, "min_point_angle", self.min_point_angle, "must be >= 0")
         _require(self.max_reprojection_error > 0, "max_reprojection_error", self.max_reprojection_error, "must be > 0")
         _require(self.min_track_views >= 2, "min_track_views", self.min_track_views, "must be >= 2")

@@ -29,6 +29,9 @@ class Reconstruction:
         inlier_mask: two-view models only: (M,) bool, the matches kept by the geometry.
         view_indices: the input index of every view of the model (registered views).
         unregistered: input views left out of the model, with the reason.
+        loose_resections: multi-view models only: input views whose resection kept too few
+            inliers at ``resection.ransac.inlier_threshold`` and registered at a wider threshold
+            (px; see :func:`torchsfm.sfm.mapping.resect`): less certain than the others.
         timings: seconds per pipeline stage.
         moving_objects: with moving-object rejection on, IMOR + RANSAC's result for every frame
             triplet (input view indices, the middle one the reference); its vectors are the
@@ -60,6 +63,7 @@ class Reconstruction:
     inlier_mask: Tensor | None = None
     view_indices: list[int] = field(default_factory=list)
     unregistered: dict[int, str] = field(default_factory=dict)
+    loose_resections: dict[int, float] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
     moving_rejections_per_view: dict[int, int] = field(default_factory=dict)

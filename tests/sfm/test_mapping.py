@@ -4,9 +4,9 @@ import torch
 from torch.testing import assert_close
 
 from torchsfm.camera import project, projection_matrix
-from torchsfm.config import Config
+from torchsfm.config import Config, with_overrides
 from torchsfm.geometry.rotation import axis_angle_to_rotation
-from torchsfm.sfm.mapping import MapperState, bundle
+from torchsfm.sfm.mapping import MapperState, bundle, resect
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.testing import look_at_rotation
 
@@ -66,3 +66,22 @@ def test_a_local_adjustment_reaches_the_noise_limited_optimum():
         bundle(state, config, 0, free_views=free)
     assert_close(state.R, reference.R, rtol=0, atol=2e-5)
     assert_close(state.t, reference.t, rtol=0, atol=1e-4)
+
+
+def test_a_resection_that_keeps_too_few_inliers_widens_its_threshold_and_says_so():
+    """Points whose errors in the new view are 3 px in random directions (a forward step
+    extrapolating their depth errors): no pose brings 50 of the 60 within the 2 px threshold, the
+    true one brings all within 4 px, so the pose comes at 4 px; with every pixel scrambled no
+    threshold up to 8 px finds 50 inliers, and the reason names it."""
+    R, t, points, state, _ = sequence(num_views=2, num_points=60)
+    config = with_overrides(Config(), ["reconstruction.min_resection_inliers=50"])
+    generator = torch.Generator().manual_seed(1)
+    pixels = state.corners[1]
+    direction = torch.nn.functional.normalize(torch.randn(60, 2, generator=generator, dtype=torch.float64), dim=-1)
+    pose, threshold = resect(points, pixels + 3.0 * direction, state.K[1], config, generator)
+    assert threshold == 4.0
+    assert int(pose.inlier_mask.sum()) >= 50
+    assert_close(pose.R, R[1], atol=0.02, rtol=0)  # 3 px on 60 points: the pose within about a degree
+    scrambled = pixels[torch.randperm(60, generator=generator)]
+    reason = resect(points, scrambled, state.K[1], config, generator)
+    assert isinstance(reason, str) and "within 8 px (needs 50)" in reason

@@ -83,3 +83,20 @@ def test_epipolar_band_holds_the_points_on_their_lines():
     line = torch.cat([scene.x1, torch.ones(50, 1, dtype=torch.float64)], -1) @ F.T  # lines F x1 in image 2
     across = scene.x2 + 3.0 * line[:, :2] / line[:, :2].norm(dim=-1, keepdim=True)
     assert not bool(epipolar_band(F, scene.x1, across, 1.0).diagonal().any())
+
+
+def test_the_oriented_epipolar_constraint_keeps_points_in_front_of_both_cameras():
+    """Noise-free correspondences are on the side of the epipole their verified matches take;
+    their reflections through the epipole, on the same epipolar lines, are not (their points
+    would lie behind a camera)."""
+    from torchsfm.geometry.fundamental import fundamental_from_pose
+    from torchsfm.sfm.view_pairs import oriented_side
+    from torchsfm.testing import synthetic_two_view
+
+    scene = synthetic_two_view(50, seed=1)
+    F = fundamental_from_pose(scene.K1, scene.K2, scene.R, scene.t)
+    e2 = torch.linalg.svd(F.T)[2][-1]
+    e2 = e2[:2] / e2[2]
+    assert bool(oriented_side(F, scene.x1, scene.x2, scene.x1[:10], scene.x2[:10]).diagonal().all())
+    reflected = 2 * e2 - scene.x2
+    assert not bool(oriented_side(F, scene.x1, reflected, scene.x1[:10], scene.x2[:10]).diagonal().any())

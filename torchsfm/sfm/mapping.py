@@ -17,7 +17,7 @@ from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
-from torchsfm.estimators.absolute_pose import estimate_absolute_pose
+from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 
@@ -42,6 +42,7 @@ class MapperState:
         self.R = torch.eye(3, dtype=torch.float64).repeat(V, 1, 1)
         self.t = torch.zeros(V, 3, dtype=torch.float64)
         self.registered = torch.zeros(V, dtype=torch.bool)
+        self.loose_resections: dict[int, float] = {}  # view -> the widened threshold its resection needed (px)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
         self.pixels = tracks.gather(corners)  # (T, 2) undistorted
@@ -204,6 +205,33 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
     return result.final_cost / max(int(usable.sum()), 1)
 
 
+def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Generator) -> tuple[AbsolutePose, float] | str:
+    """The pose of a new view from its tracks' points X (N, 3) and pixels x (N, 2) and the
+    threshold (px) it needed, or why there is none.
+
+    The points were triangulated from other views, and their depth error grows into the new
+    view's image with how far it moves along its line of sight: in forward motion, under the true
+    pose, many of them reproject several pixels off. A resection that keeps fewer than
+    ``min_resection_inliers`` is therefore tried again at double the threshold, up to
+    ``max_resection_threshold`` px (chance agreement stays negligible: 20 wrong pairs within 8 px
+    of one pose do not happen), and the bundle adjustments restore the precision."""
+    settings, needed = config.resection, config.reconstruction.min_resection_inliers
+    threshold = settings.ransac.inlier_threshold
+    while True:
+        trial = dataclasses.replace(config, resection=dataclasses.replace(
+            settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=threshold)))
+        try:
+            pose = estimate_absolute_pose(X, x, K, config=trial, generator=generator)
+        except TorchSfmError as error:
+            return f"resection failed: {error}"
+        kept = int(pose.inlier_mask.sum())
+        if kept >= needed:
+            return pose, threshold
+        if 2 * threshold > config.reconstruction.max_resection_threshold:
+            return f"resection kept {kept} inliers within {threshold:g} px (needs {needed})"
+        threshold *= 2
+
+
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
     """The K shared by every view — fx, fy, cx, cy — adjusted jointly with the cameras and points
     (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``), in place. A result
@@ -304,15 +332,13 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
             break
         state.report(f"registering view {view} ({state.names[view]}) from {int(seen[view])} points")
         mine = (tracks.view == view) & model.has_point[tracks.track]
-        try:
-            pose = timed("resection", lambda: estimate_absolute_pose(model.points[tracks.track[mine]], model.pixels[mine], model.K[view],
-                                                                     config=config, generator=state.generator))
-        except TorchSfmError as error:
-            unregistered[view] = f"resection failed: {error}"
+        found = timed("resection", lambda: resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, state.generator))
+        if isinstance(found, str):
+            unregistered[view] = found
             continue
-        if int(pose.inlier_mask.sum()) < config.reconstruction.min_resection_inliers:
-            unregistered[view] = f"resection kept {int(pose.inlier_mask.sum())} inliers (needs {config.reconstruction.min_resection_inliers})"
-            continue
+        pose, threshold = found
+        if threshold > config.resection.ransac.inlier_threshold:
+            model.loose_resections[view] = threshold
         model.R[view], model.t[view] = pose.R, pose.t
         model.registered[view] = True
         order.append(view)
@@ -379,6 +405,7 @@ def build_reconstruction(model: MapperState, images: list[Tensor] | None, names:
         view_indices=views.tolist(),
         point_tracks=point_tracks,
         unregistered=unregistered,
+        loose_resections={view: threshold for view, threshold in sorted(model.loose_resections.items()) if model.registered[view]},
         timings=timings,
     )
 

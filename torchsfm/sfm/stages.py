@@ -167,25 +167,31 @@ class RejectMovingObjects(ConfiguredStage):
 
 
 class RematchUnregistered(ConfiguredStage):
-    """When views stay unregistered although a verified pair links them to the model
+    """When views stay unregistered although a verified pair links them to the model, or
+    registered only at a widened resection threshold (``Reconstruction.loose_resections``)
     (``pairs.epipolar_matching``): the verified pairs of those views and of their partners (the
     tracks through a partner link a view to the model) are matched again in their epipolar
     bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
-    run again; the model that registers more views is kept. Costs nothing where every view
-    registers, or where the others form separate groups."""
+    run again; the model that registers more views, or as many with fewer loose resections, is
+    kept. Costs nothing where every view registers at the threshold, or where the others form
+    separate groups."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        registered = set(state.reconstruction.view_indices)
+        first = state.reconstruction
+        registered = set(first.view_indices)
         stranded = {v for key in state.pairs for v in key if v not in registered and set(key) & registered}
+        stranded |= set(first.loose_resections)
         linked = {v for key in state.pairs if stranded & set(key) for v in key}  # the stranded views and their partners
         weak = {key: m for key, m in state.pairs.items() if linked & set(key)}
         if not weak:
             return state
-        state.report(f"{len(stranded)} views unregistered: matching {len(weak)} verified pairs of them and their partners along epipolar lines")
+        state.report(f"{len(stranded)} views unregistered or loosely registered: matching {len(weak)} verified pairs of them "
+                     "and their partners along epipolar lines")
         rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
         retry = Pipeline(BuildTracks(), RejectMovingObjects(self.config), MapIncrementally(self.config))
         second = retry(replace(state, pairs={**state.pairs, **rematched}))
-        better = len(second.reconstruction.view_indices) > len(state.reconstruction.view_indices)
+        ranking = lambda model: (len(model.view_indices), -len(model.loose_resections))  # noqa: E731
+        better = ranking(second.reconstruction) > ranking(first)
         state.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
                      + ("kept" if better else "the first model kept"))
         return second if better else state

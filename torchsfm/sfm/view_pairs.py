@@ -83,7 +83,8 @@ def epipolar_matches(greys: Tensor, raw: list[Tensor], corners: list[Tensor], pa
                      homographies: dict[tuple[int, int], Tensor | None], config: Config) -> dict[tuple[int, int], PairMatches]:
     """Verified pairs matched again, guided by their F: each corner's candidates are the other
     view's corners in its epipolar band — Sampson distance under F (on the undistorted
-    ``corners``) within the RANSAC inlier threshold — instead of the search disc, with the coarse
+    ``corners``) within the RANSAC inlier threshold, on the side of the epipole that puts the
+    point in front of both cameras (:func:`oriented_side`) — instead of the search disc, with the coarse
     homography's patch warps (``pairs.warp_patches``). The band holds about a tenth of the disc's
     corners, so its NCC threshold is the one at which a corner gets no more chance candidates
     than the disc gets at ``matching.ncc_threshold`` (:func:`chance_equivalent_threshold`: about
@@ -97,6 +98,8 @@ def epipolar_matches(greys: Tensor, raw: list[Tensor], corners: list[Tensor], pa
         warp = patch_warps(H, raw[i].double()) if H is not None and config.pairs.warp_patches else None
         ncc = ncc_table(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], matching.patch_half_size, warp)
         band = epipolar_band(verified.F.double(), corners[i].double(), corners[j].double(), config.fundamental.ransac.inlier_threshold)
+        band &= oriented_side(verified.F.double(), corners[i].double(), corners[j].double(),
+                              corners[i][verified.index1].double(), corners[j][verified.index2].double())
         disc = torch.cdist(raw[i].double(), raw[j].double()) < matching.search_radius
         threshold = chance_equivalent_threshold(ncc, disc, band, matching.ncc_threshold)
         matches = match_candidates(raw[i], raw[j], select_candidates(ncc, band, threshold), matching)
@@ -113,6 +116,22 @@ def epipolar_band(F: Tensor, x1: Tensor, x2: Tensor, threshold: float) -> Tensor
     algebraic = line2 @ h2.T  # (N1, N2): x2ᵀ F x1
     denominator = line2[:, :2].square().sum(-1)[:, None] + line1[:, :2].square().sum(-1)[None]
     return algebraic.square() < threshold**2 * denominator
+
+
+def oriented_side(F: Tensor, x1: Tensor, x2: Tensor, inliers1: Tensor, inliers2: Tensor) -> Tensor:
+    """(N1, N2) bool: the pairs of points x1 (N1, 2), x2 (N2, 2) on the side of the epipole in
+    image 2 that F's verified matches ``inliers1`` ↔ ``inliers2`` (M, 2) take — the oriented
+    epipolar constraint (Werner & Pajdla 2001): for a scene point in front of both cameras,
+    e2 × x2 and F x1 are the same line with one sign. A match on the other side would put its
+    point behind a camera; in forward motion (the epipole inside the image) it halves the band.
+    The sign is the verified matches' majority."""
+    e2 = torch.linalg.svd(F.T)[2][-1]  # Fᵀ e2 = 0, up to sign: the majority sign absorbs it
+    def side(a: Tensor, b: Tensor) -> Tensor:  # (A, B) sign of (e2 × b) · (F a)
+        lines = to_homogeneous(a) @ F.T  # (A, 3)
+        through = torch.linalg.cross(e2.expand(b.shape[0], 3), to_homogeneous(b))  # (B, 3)
+        return lines @ through.T
+    sign = torch.sign(torch.diagonal(side(inliers1, inliers2)).sum())
+    return side(x1, x2) * sign > 0
 
 
 def patch_warps(H: Tensor, points: Tensor) -> Tensor | None:

@@ -88,6 +88,18 @@ def test_noise_free_problems_converge_to_zero_cost(model, solver):
         assert_close(result.problem.translations[0], start.translations[0], rtol=0, atol=0)
 
 
+def test_the_dense_solver_s_two_paths_agree(monkeypatch):
+    """The reduced camera system built from per-point blocks equals the one of the GEMM path,
+    which a memory budget of zero rules out."""
+    _, start = _ring("pinhole", cameras=12, noise=0.5)
+    config = BundleAdjustmentConfig(linear_solver="dense")
+    gemm = bundle_adjust(start, config=config)
+    monkeypatch.setattr("torchsfm.optim.bundle.DENSE_BUFFER_BYTES", 0)
+    blocks = bundle_adjust(start, config=config)
+    assert_close(blocks.problem.points, gemm.problem.points, rtol=0, atol=1e-9)
+    assert_close(blocks.final_cost, gemm.final_cost, rtol=1e-9, atol=0)
+
+
 def test_dense_and_cg_reach_the_same_cost_under_noise():
     _, start = _ring("bal", noise=0.5)
     dense = bundle_adjust(start, config=BundleAdjustmentConfig(linear_solver="dense"))

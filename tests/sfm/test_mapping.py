@@ -85,3 +85,20 @@ def test_a_resection_that_keeps_too_few_inliers_widens_its_threshold_and_says_so
     scrambled = pixels[torch.randperm(60, generator=generator)]
     reason = resect(points, scrambled, state.K[1], config, generator)
     assert isinstance(reason, str) and "within 8 px (needs 50)" in reason
+
+
+def test_the_parallax_screen_measures_the_triangulation_angle_from_F():
+    """From the true F of two noise-free views (and of the same pair with its views swapped), the
+    screen's median angle is the median triangulation angle of the true points to 1e-6 degrees."""
+    from torchsfm.geometry.fundamental import fundamental_from_pose
+    from torchsfm.sfm.mapping import parallax_angles, triangulation_angle
+    from torchsfm.sfm.view_pairs import PairMatches
+    from torchsfm.testing import synthetic_two_view
+
+    scene = synthetic_two_view(80, seed=3)
+    F = fundamental_from_pose(scene.K1, scene.K2, scene.R, scene.t)
+    index = torch.arange(80)
+    matches = [PairMatches(index, index, 0.0, F), PairMatches(index, index, 0.0, F.T)]
+    angles = parallax_angles(matches, [(0, 1), (1, 0)], [scene.x1_true, scene.x2_true], torch.stack([scene.K1, scene.K2]))
+    truth = triangulation_angle(scene.points3d, torch.zeros(3, dtype=torch.float64), -scene.R.T @ scene.t).median()
+    assert_close(angles, truth.expand(2), rtol=0, atol=1e-6)

@@ -39,6 +39,7 @@ from torchsfm.optim.lm import minimize
 from torchsfm.validation import check_finite, check_shapes
 
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
+DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
 INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0),
                         "cx": (0.0, 0.0, 1.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy)
 
@@ -284,13 +285,15 @@ class _SchurLinearization:
         product (n dc × 3)(3 × n dc) per group giving every camera-pair block of every point,
         added into S. Long tracks make those blocks (Σ n_p² dc² numbers) outweigh one GEMM with W
         laid out densely as (C dc, 3 P), which is then used instead (measured crossover: a block
-        number costs about 100 GEMM flops). Fixed cameras have zero rows in U and W, so only their
+        number costs about 100 GEMM flops) unless its two (3 P, C dc) buffers would exceed
+        ``DENSE_BUFFER_BYTES`` (many views and many points). Fixed cameras have zero rows in U and W, so only their
         damping remains on S's diagonal and their step is exactly 0.
         """
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
         block_numbers = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups) * dc * dc
-        if block_numbers * 100 <= (C * dc) ** 2 * 3 * P:
+        buffer_bytes = 2 * 3 * P * C * dc * torch.finfo(U.dtype).bits // 8
+        if block_numbers * 100 <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
             blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype, device=U.device)
             for observations, block_index in zip(problem.track_groups, problem.block_indices()):  # (P_n, n) ids, (P_n n n,) S blocks
                 P_n, n = observations.shape

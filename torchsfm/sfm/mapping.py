@@ -10,12 +10,14 @@ import time
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, project, projection_matrix
+from torchsfm.camera import Camera, pixels_to_normalized, project, projection_matrix, to_homogeneous
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
+from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.reconstruction import Reconstruction
+from torchsfm.robust.ragged import pad_rows
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.tracks import Tracks
@@ -23,6 +25,7 @@ from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 
 MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
 MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
+PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 
 
@@ -116,12 +119,21 @@ class MapperState:
 
 def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor], K: Tensor, config: Config,
                   generator: torch.Generator) -> tuple[tuple[int, int], Tensor, Tensor, str]:
-    """The first pair (by inlier count) that passes the homography and parallax tests."""
+    """The first pair (by inlier count) that passes the homography and parallax tests. The
+    parallax of every pair is first screened from its verified F (:func:`parallax_angles`, batched),
+    so that the full relative pose is estimated only for pairs that can pass (a video's
+    neighbouring frames mostly cannot)."""
     settings = config.reconstruction
     rejected = []
-    for (i, j), match in sorted(pairs.items(), key=lambda item: -item[1].index1.numel()):
+    ordered = sorted(pairs.items(), key=lambda item: -item[1].index1.numel())
+    candidates = {key: match for key, match in ordered if match.homography_ratio <= settings.max_homography_ratio}
+    screened = dict(zip(candidates, parallax_angles(list(candidates.values()), list(candidates), corners, K).tolist()))
+    for (i, j), match in ordered:
         if match.homography_ratio > settings.max_homography_ratio:
             rejected.append(f"{i}-{j}: a homography explains {match.homography_ratio:.0%} of its inliers")
+            continue
+        if screened[(i, j)] < settings.min_initial_angle:
+            rejected.append(f"{i}-{j}: median triangulation angle {screened[(i, j)]:.2f} deg (from its verified F)")
             continue
         x1, x2 = corners[i][match.index1], corners[j][match.index2]
         try:
@@ -136,6 +148,26 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
             continue
         return (i, j), pose.R, pose.t, "; ".join(rejected)
     raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
+
+
+def parallax_angles(matches: list[PairMatches], keys: list[tuple[int, int]], corners: list[Tensor], K: Tensor) -> Tensor:
+    """(M,) median angle (degrees) between the two rays of each pair's verified matches, from its
+    verified F: E = K_jᵀ F K_i, the rotation of the decomposition with most points in front, and
+    the angle between x̃_i and Rᵀ x̃_j (the triangulation angle, whatever the translation's scale).
+    Batched, ``PARALLAX_BATCH`` pairs per call."""
+    angles = []
+    for first in range(0, len(matches), PARALLAX_BATCH):
+        chunk = list(zip(keys[first:first + PARALLAX_BATCH], matches[first:first + PARALLAX_BATCH]))
+        x1, valid = pad_rows([pixels_to_normalized(corners[i][m.index1].double(), K[i]) for (i, _), m in chunk])
+        x2, _ = pad_rows([pixels_to_normalized(corners[j][m.index2].double(), K[j]) for (_, j), m in chunk])
+        K1, K2 = K[[i for (i, _), _ in chunk]].double(), K[[j for (_, j), _ in chunk]].double()
+        E = essential_from_fundamental(torch.stack([m.F.double() for _, m in chunk]), K1, K2)
+        R, _, _ = select_pose(*POSE_CANDIDATES["svd"](E), x1, x2, valid.double())
+        ray1, ray2 = to_homogeneous(x1), to_homogeneous(x2) @ R  # Rᵀ x̃_j as rows
+        cosine = (ray1 * ray2).sum(-1) / (ray1.norm(dim=-1) * ray2.norm(dim=-1))
+        angle = torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))
+        angles.append(torch.where(valid, angle, torch.nan).nanmedian(-1).values)
+    return torch.cat(angles) if angles else torch.zeros(0, dtype=torch.float64)
 
 
 def pairs_through_tracks(state, config: Config, allowed: Tensor, exclude: dict) -> dict[tuple[int, int], PairMatches]:

@@ -10,7 +10,7 @@ import time
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, pixels_to_normalized, project, projection_matrix, to_homogeneous
+from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, to_homogeneous
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
@@ -51,11 +51,9 @@ class MapperState:
         self.pixels = tracks.gather(corners)  # (T, 2) undistorted
         self.raw_pixels = tracks.gather(raw)  # as detected (for colours)
 
-    def centre(self, view: int) -> Tensor:
-        return -self.R[view].T @ self.t[view]
-
-    def projection(self, view: int) -> Tensor:
-        return projection_matrix(self.K[view], self.R[view], self.t[view])
+    def centres(self) -> Tensor:
+        """(V, 3) camera centres (meaningful for registered views)."""
+        return -(self.R.transpose(1, 2) @ self.t[..., None])[..., 0]
 
     def observation_errors(self) -> Tensor:
         """Reprojection error of every track observation in a registered view with a point
@@ -82,7 +80,7 @@ class MapperState:
         partner_observation = candidates[track_of] & self.registered[view_of] & (view_of != view)
         if not bool(partner_observation.any()):
             return 0
-        centres = -(self.R.transpose(1, 2) @ self.t[..., None])[..., 0]  # (V, 3)
+        centres = self.centres()
         distances = (centres - centres[view]).norm(dim=-1)
         # for every candidate track: its registered partner observation farthest from the view
         score = torch.where(partner_observation, distances[view_of], -1.0)
@@ -93,28 +91,27 @@ class MapperState:
         own_index = torch.full((self.tracks.num_tracks,), -1, dtype=torch.long)
         own_index[track_of[in_view]] = torch.nonzero(in_view).flatten()
         own_index = own_index[chosen_tracks]
-        added = 0
-        partners = view_of[partner_index]
-        for partner in torch.unique(partners).tolist():
-            mine = partners == partner
-            x_view, x_partner = self.pixels[own_index[mine]], self.pixels[partner_index[mine]]
-            P_view, P_partner = self.projection(view), self.projection(partner)
-            X = triangulate_points(x_partner, x_view, P_partner, P_view, self.config.triangulation)
-            good = self._acceptable(X, [(partner, x_partner), (view, x_view)])
-            tracks = chosen_tracks[mine][good]
-            self.points[tracks], self.has_point[tracks] = X[good], True
-            added += int(good.sum())
-        return added
+        partners = view_of[partner_index]  # (M,): each track's partner view, all triangulated as one batch
+        x_view, x_partner = self.pixels[own_index], self.pixels[partner_index]
+        P = projection_matrix(self.K, self.R, self.t)  # (V, 3, 4)
+        X = triangulate_points(x_partner[:, None], x_view[:, None], P[partners], P[view].expand_as(P[partners]),
+                               self.config.triangulation)[:, 0]
+        good = self._acceptable(X, partners, x_partner, view, x_view)
+        self.points[chosen_tracks[good]], self.has_point[chosen_tracks[good]] = X[good], True
+        return int(good.sum())
 
-    def _acceptable(self, X: Tensor, views: list[tuple[int, Tensor]]) -> Tensor:
+    def _acceptable(self, X: Tensor, partners: Tensor, x_partner: Tensor, view: int, x_view: Tensor) -> Tensor:
+        """(M,) bool: points X (M, 3) in front of their partner views (M,) and of ``view``, within
+        ``max_reprojection_error`` of their pixels (M, 2) in both, at ``min_point_angle`` degrees."""
         settings = self.config.reconstruction
         good = torch.isfinite(X).all(-1)
-        for view, pixels in views:
-            camera_points = X @ self.R[view].T + self.t[view]
-            error = (project(self.projection(view), X) - pixels).norm(dim=-1)
+        for views, pixels in ((partners, x_partner), (torch.full_like(partners, view), x_view)):
+            camera_points = (self.R[views] @ X[..., None])[..., 0] + self.t[views]
+            projected = (self.K[views] @ camera_points[..., None])[..., 0]
+            error = (projected[..., :2] / projected[..., 2:] - pixels).norm(dim=-1)
             good &= (camera_points[:, 2] > 0) & (error < settings.max_reprojection_error)
-        angle = triangulation_angle(X, self.centre(views[0][0]), self.centre(views[1][0]))
-        return good & (angle >= settings.min_point_angle)
+        centres = self.centres()
+        return good & (triangulation_angle(X, centres[partners], centres[view]) >= settings.min_point_angle)
 
 
 def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor], K: Tensor, config: Config,

@@ -45,7 +45,7 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     """
     config = config or MatchingConfig()
     i, j, c = candidates.index1, candidates.index2, candidates.score
-    M, N1, N2 = i.numel(), points1.shape[0], points2.shape[0]
+    M = i.numel()
     strength = torch.zeros(M, dtype=points1.dtype, device=points1.device)
     if M == 0:
         return strength
@@ -75,10 +75,12 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         value = torch.where(r < config.relative_distance_threshold,
                             c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist), 0.0)  # (E,)
         R = rows.numel()
-        k_slot = r_index * N1 + ci[c_index]  # (E,): entry (row, k) of a flattened (R, N1) table
-        l_slot = r_index * N2 + cj[c_index]  # (E,): entry (row, l) of a flattened (R, N2) table
-        best_of_k = value.new_zeros(R * N1).scatter_reduce(0, k_slot, value, "amax")
-        best_of_l = value.new_zeros(R * N2).scatter_reduce(0, l_slot, value, "amax")
+        points_k, local_k = torch.unique(ci, return_inverse=True)  # the columns name few corners of each image:
+        points_l, local_l = torch.unique(cj, return_inverse=True)  # tables over those, not over all N1, N2
+        k_slot = r_index * points_k.numel() + local_k[c_index]  # (E,): entry (row, k) of a flattened (R, K) table
+        l_slot = r_index * points_l.numel() + local_l[c_index]  # (E,): entry (row, l) of a flattened (R, L) table
+        best_of_k = value.new_zeros(R * points_k.numel()).scatter_reduce(0, k_slot, value, "amax")
+        best_of_l = value.new_zeros(R * points_l.numel()).scatter_reduce(0, l_slot, value, "amax")
         counted = (value > 0) & (value == best_of_k[k_slot]) & (value == best_of_l[l_slot])  # mutual best: the symmetry fix
         total = value.new_zeros(R).index_add_(0, r_index, torch.where(counted, value, 0.0))
         strength[rows] = c[rows] * total

@@ -30,7 +30,7 @@ from torchsfm.io.vrml import vrml_text
 from torchsfm.sfm.incremental import reconstruct
 from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
-from torchsfm.testing import rotation_error_deg, translation_direction_error_deg
+from torchsfm.evaluation import rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import corners_figure, matches_figure, segmentation_figure, write_png
 
 SAMPLE = Path(__file__).resolve().parent / "data" / "fountain"

@@ -1,4 +1,5 @@
-"""Comparing a reconstruction with ground-truth cameras (similarity alignment, pose errors)."""
+"""Comparing results with the ground truth: cameras after a similarity alignment, pose errors,
+inlier masks, moving-object decisions, motion labels."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.geometry.rotation import nearest_rotation, rotation_angle
+from torchsfm.geometry.rotation import angle_between, nearest_rotation, rotation_angle
 
 
 @dataclass
@@ -79,3 +80,33 @@ def _best_assignment(overlap: Tensor) -> int:
     for chosen in itertools.permutations(range(columns), rows):
         best = max(best, sum(int(overlap[r, c]) for r, c in enumerate(chosen)))
     return best
+
+
+def rotation_error_deg(R_estimated: Tensor, R_true: Tensor) -> float:
+    """Angle of R_estimatedᵀ R_true in degrees."""
+    return float(rotation_angle(R_estimated.double(), R_true.double()))
+
+
+def translation_direction_error_deg(t_estimated: Tensor, t_true: Tensor) -> float:
+    """Angle between two translation directions in degrees (sign matters)."""
+    return float(angle_between(t_estimated.double(), t_true.double()))
+
+
+def mask_recall_precision(estimated: Tensor, truth: Tensor) -> tuple[float, float]:
+    """(recall, precision) of an estimated inlier mask against the true one."""
+    hits = int((estimated & truth).sum())
+    return hits / max(int(truth.sum()), 1), hits / max(int(estimated.sum()), 1)
+
+
+def rejection_figures(background: Tensor, labels: Tensor) -> dict[str, float]:
+    """Table 5.1's counts for a background decision (N,) bool against labels (N,) (0 = static).
+
+    Returns wrong rejections (static vectors rejected), undetected (moving or outlier vectors
+    kept), inliers (vectors kept), total, and the rates: wrongly rejected share of the static
+    vectors and undetected share of the others.
+    """
+    static = labels == 0
+    wrong = int((static & ~background).sum())
+    undetected = int((~static & background).sum())
+    return {"wrong_rejections": wrong, "undetected": undetected, "inliers": int(background.sum()), "total": labels.numel(),
+            "wrong_rate": wrong / max(int(static.sum()), 1), "undetected_rate": undetected / max(int((~static).sum()), 1)}

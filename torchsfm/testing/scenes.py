@@ -1,4 +1,5 @@
-"""Seeded synthetic scenes with ground truth, for tests, examples and benchmarks."""
+"""Seeded synthetic scenes with ground truth: two calibrated views, a moving camera among
+independently moving objects, calibration-board poses."""
 
 from __future__ import annotations
 
@@ -8,10 +9,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.camera import pixels_to_normalized, project, projection_matrix, to_homogeneous, undistort_normalized
+from torchsfm.camera import project, projection_matrix
 from torchsfm.geometry.fundamental import epipolar_line_distances, fundamental_from_pose
-from torchsfm.geometry.rotation import angle_between, axis_angle_to_rotation, rotation_angle
-from torchsfm.estimators.two_view_geometry import estimate_fundamental, estimate_relative_pose
+from torchsfm.geometry.rotation import axis_angle_to_rotation
 
 
 @dataclass
@@ -137,16 +137,6 @@ def synthetic_two_view(
                         x1=x1, x2=x2, is_inlier=is_inlier, image_size=image_size)
 
 
-def rotation_error_deg(R_estimated: Tensor, R_true: Tensor) -> float:
-    """Angle of R_estimatedᵀ R_true in degrees."""
-    return float(rotation_angle(R_estimated.double(), R_true.double()))
-
-
-def translation_direction_error_deg(t_estimated: Tensor, t_true: Tensor) -> float:
-    """Angle between two translation directions in degrees (sign matters)."""
-    return float(angle_between(t_estimated.double(), t_true.double()))
-
-
 def replace_with_random_points(
     x: Tensor, fraction: float, image_size: tuple[int, int], generator: torch.Generator
 ) -> tuple[Tensor, Tensor]:
@@ -162,86 +152,6 @@ def replace_with_random_points(
     kept = torch.ones(n, dtype=torch.bool)
     kept[replaced] = False
     return corrupted, kept
-
-
-def mask_recall_precision(estimated: Tensor, truth: Tensor) -> tuple[float, float]:
-    """(recall, precision) of an estimated inlier mask against the true one."""
-    hits = int((estimated & truth).sum())
-    return hits / max(int(truth.sum()), 1), hits / max(int(estimated.sum()), 1)
-
-
-def evaluate_two_view_pair(dataset, i: int, j: int, image_size: tuple[int, int], outliers: float, seed: int,
-                           config=None) -> dict[str, float]:
-    """Corrupt the ground-truth matches of views (i, j) of an Oxford set and score both estimators.
-
-    A fraction ``outliers`` of view j's matched corners is replaced by uniform random pixels;
-    :func:`torchsfm.estimate_fundamental` and :func:`torchsfm.estimate_relative_pose` (K from
-    the ground-truth P) then run. Returns recall/precision of both inlier masks (and the counts
-    behind them, for pooling) and the rotation / translation-direction errors in degrees.
-    """
-    generator = torch.Generator().manual_seed(seed)
-    K, _, _ = dataset.cameras()
-    x1, x2 = dataset.correspondences(i, j)
-    x2, truth = replace_with_random_points(x2, outliers, image_size, generator)
-    fundamental = estimate_fundamental(x1, x2, config=config, generator=generator)
-    pose = estimate_relative_pose(x1, x2, K[i], K[j], config=config, generator=generator)
-    R_true, t_true = dataset.relative_pose(i, j)
-    f_recall, f_precision = mask_recall_precision(fundamental.inlier_mask, truth)
-    p_recall, p_precision = mask_recall_precision(pose.inlier_mask, truth)
-    return {
-        "matches": float(len(truth)),
-        "true_inliers": float(truth.sum()),
-        "F_hits": float((fundamental.inlier_mask & truth).sum()),
-        "F_kept": float(fundamental.inlier_mask.sum()),
-        "pose_hits": float((pose.inlier_mask & truth).sum()),
-        "pose_kept": float(pose.inlier_mask.sum()),
-        "F_recall": f_recall,
-        "F_precision": f_precision,
-        "pose_recall": p_recall,
-        "pose_precision": p_precision,
-        "R_error_deg": rotation_error_deg(pose.R, R_true),
-        "t_error_deg": translation_direction_error_deg(pose.t, t_true),
-    }
-
-
-def render_squares(squares: list[tuple[float, float, float, float, float]], size: tuple[int, int] = (200, 160),
-                   blur: float = 1.0, background: float = 0.2) -> Tensor:
-    """A grey image (1, H, W) float64 of axis-aligned bright squares with blurred edges.
-
-    Each square is (x0, y0, x1, y1, intensity) in pixels (any sub-pixel position); edges follow
-    a Gaussian-integrated step of std ``blur`` pixels, as a lens would render them, so its
-    corners sit exactly at the given coordinates.
-    """
-    width, height = size
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
-
-    def step(distance: Tensor) -> Tensor:
-        return 0.5 * (1 + torch.erf(distance / (blur * 2**0.5)))
-
-    image = torch.full((height, width), background, dtype=torch.float64)
-    for x0, y0, x1, y1, intensity in squares:
-        image = image + intensity * step(xs - x0) * step(x1 - xs) * step(ys - y0) * step(y1 - ys)
-    return image[None]
-
-
-def random_squares(seed: int, shift: tuple[float, float] = (0.0, 0.0)) -> list[tuple[float, float, float, float, float]]:
-    """Six squares at seeded sub-pixel positions in a 200×160 frame (for :func:`render_squares`),
-    all moved by ``shift``: the same seed with two shifts gives two renderings of one scene."""
-    generator = torch.Generator().manual_seed(seed)
-    squares = []
-    for i in range(3):
-        for j in range(2):
-            x0 = 20 + 60 * i + 5 * torch.rand(1, generator=generator).item()
-            y0 = 20 + 70 * j + 5 * torch.rand(1, generator=generator).item()
-            width = 25 + 5 * torch.rand(1, generator=generator).item()
-            squares.append((x0 + shift[0], y0 + shift[1], x0 + width + shift[0], y0 + 30 + shift[1], 0.6))
-    return squares
-
-
-def square_corners(squares: list[tuple[float, float, float, float, float]]) -> Tensor:
-    """The (4 S, 2) float64 corners of :func:`random_squares` squares."""
-    return torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))],
-                        dtype=torch.float64)
 
 
 @dataclass
@@ -347,99 +257,6 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
                              object_rotations=object_rotations, object_centres=object_centres)
 
 
-def rejection_figures(background: Tensor, labels: Tensor) -> dict[str, float]:
-    """Table 5.1's counts for a background decision (N,) bool against labels (N,) (0 = static).
-
-    Returns wrong rejections (static vectors rejected), undetected (moving or outlier vectors
-    kept), inliers (vectors kept), total, and the rates: wrongly rejected share of the static
-    vectors and undetected share of the others.
-    """
-    static = labels == 0
-    wrong = int((static & ~background).sum())
-    undetected = int((~static & background).sum())
-    return {"wrong_rejections": wrong, "undetected": undetected, "inliers": int(background.sum()), "total": labels.numel(),
-            "wrong_rate": wrong / max(int(static.sum()), 1), "undetected_rate": undetected / max(int((~static).sum()), 1)}
-
-
-# Where the inserted object sits in the three frames of :func:`insert_moving_patch` (top-left
-# corners, pixels of a 768×512 image): a step right and up, then right and down — an
-# independent, non-constant motion.
-PATCH_POSITIONS = ((150, 260), (215, 235), (250, 300))
-
-
-def insert_moving_patch(images: list[Tensor], patch: Tensor, positions: tuple[tuple[int, int], ...] = PATCH_POSITIONS
-                        ) -> tuple[list[Tensor], Tensor]:
-    """Paste a textured patch (C, h, w) into each image (C, H, W) at its top-left position (x, y),
-    as the thesis did (§5.5). Returns the new images and the (F, 4) boxes (x0, y0, x1, y1)."""
-    h, w = patch.shape[-2:]
-    pasted, boxes = [], []
-    for image, (x, y) in zip(images, positions):
-        image = image.clone()
-        image[:, y:y + h, x:x + w] = patch
-        pasted.append(image)
-        boxes.append([x, y, x + w, y + h])
-    return pasted, torch.tensor(boxes, dtype=torch.float64)
-
-
-def inside_boxes(tracks: Tensor, boxes: Tensor, margin: float = 4.0) -> Tensor:
-    """(F, N, 2) points against (F, 4) boxes grown by ``margin`` px: (N,) True where any frame's
-    point lies in its frame's box."""
-    low, high = boxes[:, None, :2] - margin, boxes[:, None, 2:] + margin
-    return ((tracks >= low) & (tracks <= high)).all(-1).any(0)
-
-
-@dataclass
-class InsertedObjectTriplet:
-    """Three consecutive real frames with a pasted moving patch, and their matched triplets.
-
-    Fields:
-        images: three (3, H, W) uint8 frames with the patch. boxes: (3, 4) its boxes.
-        tracks: (3, N, 2) float64 corners of frame 1 matched into frames 0 and 2.
-        labels: (N,) 0 static (within ``static_threshold`` px of the ground-truth epipolar
-            geometry of pairs (1, 0) and (1, 2)), 1 on the patch, -1 other outliers.
-    """
-
-    images: list[Tensor]
-    boxes: Tensor
-    tracks: Tensor
-    labels: Tensor
-
-
-def match_triplet(images: list[Tensor], config=None) -> Tensor:
-    """Matches of image 0 to image 1 whose image-1 corner is also matched into image 2, as the
-    two-view pipeline chains them: (3, N, 2) float64 for three (C, H, W) images."""
-    from torchsfm.config import Config
-    from torchsfm.features.harris import HarrisCorners
-    from torchsfm.images import to_grey
-    from torchsfm.matching.matcher import PutativeMatcher, chain_matches
-
-    config = config or Config()
-    grey = torch.stack([to_grey(image) for image in images])
-    corners = HarrisCorners(config.harris)(grey)
-    points = [corners.of_image(v).double() for v in range(3)]
-    matcher = PutativeMatcher(config.matching)
-    first, onward = matcher(grey[0], grey[1], points[0], points[1]), matcher(grey[1], grey[2], points[1], points[2])
-    seen, third = chain_matches(first, onward, points[1].shape[0])
-    return torch.stack([points[0][first.index1[seen]], points[1][first.index2[seen]], points[2][third]])
-
-
-def inserted_object_triplet(sequence, first: int, patch: Tensor, *, static_threshold: float = 2.0,
-                            config=None) -> InsertedObjectTriplet:
-    """Frames first..first+2 of a :class:`~torchsfm.io.datasets.StrechaSequence` with ``patch``
-    pasted at :data:`PATCH_POSITIONS`, matched, and labelled against the ground truth."""
-    from torchsfm.images import read_image
-
-    frames, boxes = insert_moving_patch([read_image(sequence.images[first + j]) for j in range(3)], patch)
-    tracks = match_triplet(frames, config)
-    static = torch.ones(tracks.shape[1], dtype=torch.bool)
-    for other in (0, 2):
-        R, t = sequence.relative_pose(first + 1, first + other)
-        F = fundamental_from_pose(sequence.K[first + 1], sequence.K[first + other], R, t)
-        static &= torch.maximum(*epipolar_line_distances(F, tracks[1], tracks[other])) < static_threshold
-    labels = torch.where(inside_boxes(tracks, boxes), 1, torch.where(static, 0, -1))
-    return InsertedObjectTriplet(images=frames, boxes=boxes, tracks=tracks, labels=labels)
-
-
 def board_poses(num_views: int, seed: int, distance: float = 10.0, spread: float = 2.5) -> tuple[Tensor, Tensor]:
     """Seeded board-to-camera poses for calibration tests: a 9 x 7 board of unit squares (its
     middle at (4, 3)) ``distance`` units away, shifted up to ``spread`` units sideways, tilted
@@ -459,59 +276,6 @@ def board_poses(num_views: int, seed: int, distance: float = 10.0, spread: float
         R.append(rotation)
         t.append(offset - rotation @ centre)
     return torch.stack(R), torch.stack(t)
-
-
-def render_chessboard(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, pattern: tuple[int, int],
-                      size: tuple[int, int] = (640, 480), supersample: int = 3) -> Tensor:
-    """A (1, H, W) uint8 photo of a chessboard with (cols, rows) inner corners at (i, j) board
-    units (unit squares), a one-square white margin, on a grey background, seen by a camera with
-    radial distortion (k1, k2) at pose (R, t); anti-aliased by ``supersample``² samples a pixel."""
-    W, H = size
-    cols, rows = pattern
-    ys, xs = torch.meshgrid((torch.arange(H * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5,
-                            (torch.arange(W * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5, indexing="ij")
-    ideal = undistort_normalized(pixels_to_normalized(torch.stack([xs, ys], dim=-1).reshape(-1, 2), K), distortion)
-    plane = torch.linalg.inv(torch.stack([R[:, 0], R[:, 1], t], dim=-1))  # normalized image -> board plane
-    board = to_homogeneous(ideal) @ plane.T
-    in_front = board[:, 2] > 0
-    u, v = board[:, 0] / board[:, 2], board[:, 1] / board[:, 2]
-    squares = (u > -1) & (u < cols) & (v > -1) & (v < rows) & in_front
-    margin = (u > -2) & (u < cols + 1) & (v > -2) & (v < rows + 1) & in_front
-    dark = ((torch.floor(u) + torch.floor(v)) % 2 == 0) & squares
-    value = torch.where(dark, 0.08, torch.where(margin, 0.92, 0.5))
-    value = value.reshape(H, supersample, W, supersample).mean((1, 3))
-    return (value * 255).round().clamp(0, 255).to(torch.uint8)[None]
-
-
-def render_corner_scene(texture: Tensor, K: Tensor, distortion: Tensor, R: Tensor, t: Tensor,
-                        size: tuple[int, int] = (640, 480), supersample: int = 2) -> Tensor:
-    """A (3, H, W) uint8 photo of a textured building corner seen by a camera with radial
-    distortion (k1, k2) at pose (R, t) (camera from world).
-
-    The scene: two walls meeting at the line x = 0, z = 10 (apex towards the camera), the left
-    one on x + z = 10 (x <= 0), the right one on -x + z = 10 (x >= 0), from y = -6 to 6, each
-    covered by the texture (C, h, w) stretched over 12 × 12 units; grey elsewhere.
-    """
-    W, H = size
-    ys, xs = torch.meshgrid((torch.arange(H * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5,
-                            (torch.arange(W * supersample, dtype=torch.float64) + 0.5) / supersample - 0.5, indexing="ij")
-    rays = to_homogeneous(undistort_normalized(pixels_to_normalized(torch.stack([xs, ys], -1).reshape(-1, 2), K), distortion))
-    origin = -R.T @ t
-    direction = rays @ R  # world directions (rows: Rᵀ d)
-    colour = torch.full((rays.shape[0], texture.shape[0]), 0.5, dtype=torch.float64)
-    for side in (-1.0, 1.0):  # the wall side * x + z = 10 restricted to side * x >= 0... left wall: x <= 0
-        normal = torch.tensor([-side, 0.0, 1.0], dtype=torch.float64)  # left wall (side -1): x + z = 10
-        depth = (10 - normal @ origin) / (direction @ normal)
-        hit = origin + depth[:, None] * direction
-        along = (hit[:, 0] ** 2 + (hit[:, 2] - 10) ** 2).sqrt()  # distance from the corner line
-        on_wall = (depth > 0) & (side * hit[:, 0] >= 0) & (along <= 12) & (hit[:, 1].abs() <= 6)
-        u = along / 12 * 2 - 1 if side > 0 else 1 - along / 12 * 2  # texture x in [-1, 1], mirrored on the left
-        v = hit[:, 1] / 6
-        grid = torch.stack([u, v], -1).float()[None, None]
-        sampled = torch.nn.functional.grid_sample(texture.float()[None] / 255, grid, align_corners=True)[0, :, 0].T.double()
-        colour = torch.where(on_wall[:, None], sampled, colour)
-    image = colour.reshape(H, supersample, W, supersample, -1).mean((1, 3)).permute(2, 0, 1)
-    return (image * 255).round().clamp(0, 255).to(torch.uint8)
 
 
 def wide_angle_camera() -> tuple[Tensor, Tensor]:

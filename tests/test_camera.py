@@ -12,6 +12,8 @@ from torchsfm.camera import (
     pixels_to_normalized,
     project,
     projection_matrix,
+    rescale_intrinsics,
+    rescale_pixels,
     undistort_image,
     undistort_points,
 )
@@ -102,3 +104,28 @@ def test_singular_intrinsics_are_rejected():
     K = torch.tensor([[800.0, 0, 320], [0, 0, 240], [0, 0, 1]], **DOUBLE)
     with pytest.raises(DegenerateConfigurationError, match="K is singular"):
         check_intrinsics(K=K)
+
+
+def test_a_resampled_image_s_intrinsics_project_to_its_pixels():
+    """Projecting with rescale_intrinsics(K, s) gives the rescaled pixels of projecting with K,
+    and rescaling by s then 1 / s is the identity (exactly, up to rounding)."""
+    K, R, t = _camera()
+    X = torch.randn(20, 3, generator=torch.Generator().manual_seed(1), **DOUBLE) + torch.tensor([0.0, 0.0, 6.0], **DOUBLE)
+    for scale in (1 / 3, 0.5, 2.0):
+        reduced = project(projection_matrix(rescale_intrinsics(K, scale), R, t), X)
+        assert_close(reduced, rescale_pixels(project(projection_matrix(K, R, t), X), scale), rtol=0, atol=1e-9)
+        assert_close(rescale_intrinsics(rescale_intrinsics(K, scale), 1 / scale), K, rtol=0, atol=1e-9)
+
+
+def test_reduce_image_averages_blocks_on_the_rescaled_pixel_grid():
+    """A 3× reduction of an image that is one value per 3 × 3 block returns those values, in the
+    input's dtype; the reduced pixel x sits at the centre (x + 0.5) · 3 − 0.5 of its block."""
+    from torchsfm.images import reduce_image
+
+    blocks = torch.randint(0, 256, (3, 4, 5), generator=torch.Generator().manual_seed(0), dtype=torch.uint8)
+    image = blocks.repeat_interleave(3, dim=1).repeat_interleave(3, dim=2)
+    reduced = reduce_image(image, 3)
+    assert reduced.dtype == torch.uint8
+    assert torch.equal(reduced, blocks)
+    assert_close(rescale_pixels(torch.tensor([[0.0, 0.0], [4.0, 3.0]]), 3.0), torch.tensor([[1.0, 1.0], [13.0, 10.0]]))
+

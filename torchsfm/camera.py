@@ -80,6 +80,18 @@ def decompose_projection(P: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return K / K[..., 2:3, 2:3], R, t
 
 
+def rescale_pixels(x: Tensor, scale: float) -> Tensor:
+    """Pixel coordinates (*, 2) of an image resampled by ``scale`` (pixel centres at integers:
+    x' = (x + 0.5) · scale − 0.5)."""
+    return (x + 0.5) * scale - 0.5
+
+
+def rescale_intrinsics(K: Tensor, scale: float) -> Tensor:
+    """K (*, 3, 3) of the same camera in an image resampled by ``scale`` (:func:`rescale_pixels`)."""
+    A = torch.tensor([[scale, 0.0, (scale - 1) / 2], [0.0, scale, (scale - 1) / 2], [0.0, 0.0, 1.0]], dtype=K.dtype, device=K.device)
+    return A @ K
+
+
 def pixels_to_normalized(x: Tensor, K: Tensor) -> Tensor:
     """x_n = K⁻¹ x: pixels (*, N, 2), K (*, 3, 3) -> normalized coordinates (*, N, 2)."""
     return from_homogeneous(to_homogeneous(x) @ torch.linalg.inv(K).transpose(-1, -2))

@@ -368,6 +368,12 @@ class ReconstructionConfig:
     ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`). New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
+    Images whose larger side exceeds ``max_image_size`` px (0: never) are reduced by the smallest
+    integer factor that brings them within it (block averages) before any detection: the
+    detector's and matcher's pixel settings (11-pixel patches, the search disc, the
+    strength-measure neighbourhood) describe image structure at about a thousand pixels across,
+    and a 12-megapixel photo's corners at full resolution are fine texture (COLMAP bounds its
+    SIFT input likewise, ``max_image_size``); the model is reported at the input resolution.
     Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end;
     with ``local_bundle_window`` W > 0, each new view that no full adjustment follows gets a local
     adjustment of the W newest views and the points they see (the older views that see those points hold
@@ -387,6 +393,7 @@ class ReconstructionConfig:
     min_initial_angle: float = 2.0
     min_resection_inliers: int = 20
     max_resection_threshold: float = 8.0
+    max_image_size: int = 1600
     min_point_angle: float = 1.0
     max_reprojection_error: float = 2.0
     min_track_views: int = 2
@@ -408,6 +415,7 @@ class ReconstructionConfig:
         _require(0 < self.max_homography_ratio <= 1, "max_homography_ratio", self.max_homography_ratio, "must lie in (0, 1]")
         _require(self.min_initial_angle >= 0, "min_initial_angle", self.min_initial_angle, "must be >= 0")
         _require(self.min_resection_inliers >= 6, "min_resection_inliers", self.min_resection_inliers, "must be >= 6")
+        _require(self.max_image_size >= 0, "max_image_size", self.max_image_size, "must be >= 0")
         _require(self.max_resection_threshold > 0, "max_resection_threshold", self.max_resection_threshold, "must be > 0")
         _require(self.min_point_angle >= 0, "min_point_angle", self.min_point_angle, "must be >= 0")
         _require(self.max_reprojection_error > 0, "max_reprojection_error", self.max_reprojection_error, "must be > 0")

@@ -8,6 +8,7 @@ import kornia.io
 import torch
 from kornia.color import rgb_to_grayscale
 from torch import Tensor
+from torch.nn import functional
 
 from torchsfm.errors import InputError
 
@@ -48,3 +49,13 @@ def to_grey_bytes(image: Tensor) -> Tensor:
     if image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0):
         return image[:1].clone()
     return (to_grey(image) * 255).round().to(torch.uint8)
+
+
+def reduce_image(image: Tensor, factor: int) -> Tensor:
+    """(C, H, W) uint8/float image averaged over ``factor`` × ``factor`` blocks -> (C, H // factor,
+    W // factor) of the same dtype; pixel x of the result is pixel (x + 0.5) · factor − 0.5 of the
+    input (:func:`torchsfm.camera.rescale_pixels`)."""
+    if factor == 1:
+        return image
+    reduced = functional.avg_pool2d(to_unit_float(image)[None], factor)[0]
+    return (reduced * 255).round().to(torch.uint8) if image.dtype == torch.uint8 else reduced.to(image.dtype)

@@ -15,10 +15,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchsfm.camera import check_intrinsics
+from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import read_image
+from torchsfm.images import read_image, reduce_image
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -116,6 +116,12 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise InputError(f"moving_objects must be 'reject' or 'reconstruct', got {moving_objects!r}")
         config = replace(config, moving_objects=replace(config.moving_objects, enabled=True,
                                                         reconstruct_objects=moving_objects == "reconstruct"))
+    factor = reduction_factor(loaded[0].shape[-2:], config.reconstruction.max_image_size)
+    input_size = (loaded[0].shape[-1], loaded[0].shape[-2])  # (W, H)
+    if factor > 1:  # larger images: detection and matching at the working resolution
+        loaded = [reduce_image(image, factor) for image in loaded]
+        K = K if estimate_focal else rescale_intrinsics(K, 1 / factor)
+        exif = [None if focal is None else focal / factor for focal in exif]
     if pipeline is None:
         pipeline = default_pipeline(config)
         if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
@@ -132,4 +138,24 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
     model.moving_rejections_per_view = {kept[v]: count for v, count in model.moving_rejections_per_view.items()}
+    if factor > 1:
+        for part in (model, *model.other_models, *bodies):
+            to_input_resolution(part, factor, input_size)
+        if model.segmented_tracks is not None:
+            pixels, visible, labels = model.segmented_tracks
+            model.segmented_tracks = (rescale_pixels(pixels, factor), visible, labels)
     return model
+
+
+def reduction_factor(size: tuple[int, int], max_size: int) -> int:
+    """The smallest integer factor that brings an image of ``size`` (H, W) within ``max_size``
+    px on its larger side (1: no reduction, or ``max_size`` 0)."""
+    return max(1, -(-max(size) // max_size)) if max_size else 1
+
+
+def to_input_resolution(model: Reconstruction, factor: int, size: tuple[int, int]) -> None:
+    """A model computed on images reduced by ``factor``, in place: its intrinsics and keypoints
+    in pixels of the input images of ``size`` (W, H); poses and points are unchanged."""
+    model.cameras = replace(model.cameras, K=rescale_intrinsics(model.cameras.K, factor))
+    model.keypoints = rescale_pixels(model.keypoints, factor)
+    model.image_sizes = torch.tensor([list(size)] * model.image_sizes.shape[0], dtype=model.image_sizes.dtype)

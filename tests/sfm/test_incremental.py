@@ -210,3 +210,27 @@ def test_the_sift_features_option_reconstructs_strecha_views(shared_data):
     assert model.view_indices == [0, 1, 2, 3] and "DetectSiftFeatures" in model.timings
     errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[:4], sequence.t[:4])
     assert errors.centre.max() < 0.01 * errors.extent and errors.rotation.max() < 0.3
+
+
+def test_colour_files_are_held_as_grey_and_still_colour_their_points():
+    """The bundled fountain views read from disk: the pipeline holds each colour file's grey (one
+    plane, the grey images' own memory), and every point takes its colour from a half-size copy:
+    within 15 levels (mean over points and channels; 11 measured: corners sit where the intensity
+    changes, so a 2 × 2 average differs there) of the full image's pixel at its first
+    observation."""
+    from torchsfm.actions import SAMPLE
+    from torchsfm.images import read_image
+    from torchsfm.sfm.stages import DetectCorners, ViewSet
+
+    sample = read_strecha(SAMPLE)
+    model = torchsfm.reconstruct(sample.images, sample.K[0], generator=torch.Generator().manual_seed(0))
+    assert model.num_views == 3
+    full = [read_image(path) for path in sample.images]
+    first = torch.full((model.num_points,), model.observation_points.numel()).scatter_reduce(
+        0, model.observation_points, torch.arange(model.observation_points.numel()), "amin")
+    pixel = model.keypoints[first].round().long()
+    view = torch.tensor(model.view_indices)[model.observation_views[first]]
+    truth = torch.stack([full[v][:, y, x] for v, (x, y) in zip(view.tolist(), pixel.tolist())])
+    assert float((model.colors.float() - truth.float()).abs().mean()) < 15
+    state = DetectCorners(Config().harris)(ViewSet.of([full[0][:1].expand(3, -1, -1)], sample.K[0]))
+    assert state.images[0].data_ptr() == state.greys[0].data_ptr()  # a grey image is a view of its grey

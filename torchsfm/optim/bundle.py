@@ -302,6 +302,7 @@ class _SchurLinearization:
                 products = (left @ right.transpose(1, 2)).reshape(P_n, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc)
                 blocks.index_add_(0, block_index, products)
             reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
+            del blocks
         else:
             c, p = bundle.camera_index, bundle.point_index
             Wt, VWt = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
@@ -309,7 +310,10 @@ class _SchurLinearization:
             Wt.index_put_(where, self.W.transpose(1, 2))  # each (point, camera) block is observed once
             VWt.index_put_(where, Y.transpose(1, 2))  # V*⁻¹ Wᵀ, only the observed blocks
             reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
-        L, info = torch.linalg.cholesky_ex(torch.block_diag(*U) - reduction)
+        S = reduction.neg_()  # S = U* - reduction, in place: the (C dc)² matrix is the solver's largest buffer
+        diagonal = S.view(C, dc, C, dc).diagonal(dim1=0, dim2=2)  # (dc, dc, C): the camera blocks
+        diagonal += U.permute(1, 2, 0)
+        L, info = torch.linalg.cholesky_ex(S)
         if int(info) != 0:
             return torch.zeros_like(rhs), torch.tensor(False)
         columns = rhs.reshape(C * dc, -1)  # (C dc) x 1, or 1 + m with the intrinsics' border

@@ -18,7 +18,7 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import read_image, reduce_image
+from torchsfm.images import read_image, reduce_image, to_grey_bytes
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -26,6 +26,7 @@ from torchsfm.sfm.stages import Pipeline, Progress, ViewSet, default_pipeline
 from torchsfm.validation import check_finite
 
 
+COLOUR_REDUCTION = 2  # a colour file's colours are kept at half size: the points' colours need no more
 EXIF_AGREEMENT = 0.01  # the images' EXIF focal lengths are used when they agree to 1 % (one camera, one zoom)
 
 
@@ -95,8 +96,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise ShapeError(f"distortion must be (2,) or ({len(images)}, 2), got {tuple(distortion.shape)}")
     distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
     check_finite(distortion=distortion)
-    loaded, kept, unreadable, exif = [], [], {}, []
+    loaded, kept, unreadable, exif, colours = [], [], {}, [], []
     for v, image in enumerate(images):
+        colour = None
         if isinstance(image, (str, Path)):
             try:
                 path, image = image, read_image(image)
@@ -104,9 +106,12 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
                 unreadable[v] = str(error)
                 continue
             exif.append(exif_focal_pixels(path, image.shape[-1], image.shape[-2]) if estimate_focal else None)
+            if image.stride(0) != 0:  # a colour file: its grey for the pipeline, a half-size copy for the colours (memory)
+                image, colour = to_grey_bytes(image), reduce_image(image, COLOUR_REDUCTION)
         else:
             exif.append(None)
         loaded.append(image)
+        colours.append(colour)
         kept.append(v)
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
@@ -127,7 +132,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
             pipeline.append(ReconstructObjects(config))
     state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
-                       progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif))
+                       progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif), colours=colours)
+    del loaded, colours  # the state holds the images now (and may replace them by lighter copies)
     state = pipeline(state)
     model = state.reconstruction
     model.timings = state.timings

@@ -10,7 +10,7 @@ import time
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, to_homogeneous
+from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, rescale_pixels, to_homogeneous
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
@@ -307,7 +307,9 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     reasons: dict[int, str] = {}
     for _, unregistered in reversed(grown):  # the largest model's reasons last: they stand
         reasons.update(unregistered)
-    built = [build_reconstruction(model, state.images or None, state.names, {}, {}) for model, _ in grown]
+    colours = [colour if colour is not None else image for colour, image in zip(state.colours or [None] * V, state.images)]
+    size = tuple(state.images[0].shape[-2:]) if state.images else None
+    built = [build_reconstruction(model, colours or None, size, state.names, {}, {}) for model, _ in grown]
     primary = built[0]
     for k, other in enumerate(built[1:], start=1):
         for view in other.view_indices:
@@ -397,10 +399,12 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     return model, unregistered
 
 
-def build_reconstruction(model: MapperState, images: list[Tensor] | None, names: list[str], unregistered: dict[int, str],
-            timings: dict[str, float]) -> Reconstruction:
-    """The model's registered views and its points seen in ``min_track_views`` inlier views,
-    coloured from ``images`` (None: tracks without images, every point grey)."""
+def build_reconstruction(model: MapperState, colours: list[Tensor] | None, size: tuple[int, int] | None, names: list[str],
+                         unregistered: dict[int, str], timings: dict[str, float]) -> Reconstruction:
+    """The model's registered views and its points seen in ``min_track_views`` inlier views of
+    images of ``size`` (H, W), coloured from each view's image in ``colours`` (any resolution:
+    sampled at the rescaled pixel; None: tracks without images, every point grey, the size
+    that of the pixels' extent)."""
     errors = model.observation_errors()
     tracks = model.tracks
     keep = errors < model.config.reconstruction.max_reprojection_error
@@ -414,20 +418,22 @@ def build_reconstruction(model: MapperState, images: list[Tensor] | None, names:
     keep &= point_of[tracks.track] >= 0
     first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
-    pixel = model.raw_pixels[first_observation].round().long()
+    H, W = size if size is not None else (int(model.pixels[:, 1].max()) + 1, int(model.pixels[:, 0].max()) + 1)
     colour_view = tracks.view[first_observation]
-    colours = torch.full((point_tracks.numel(), 3), 128, dtype=torch.uint8)
-    for view in torch.unique(colour_view).tolist() if images else []:  # one gather per view: no stack of every image
+    point_colours = torch.full((point_tracks.numel(), 3), 128, dtype=torch.uint8)
+    for view in torch.unique(colour_view).tolist() if colours else []:  # one gather per view: no stack of every image
         mine = colour_view == view
-        colour = images[view].expand(3, -1, -1)[:, pixel[mine, 1], pixel[mine, 0]].T
-        colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
-    H, W = images[0].shape[-2:] if images else (int(model.pixels[:, 1].max()) + 1, int(model.pixels[:, 0].max()) + 1)
+        source = colours[view]
+        pixel = rescale_pixels(model.raw_pixels[first_observation[mine]], source.shape[-1] / W).round().long()
+        pixel = torch.minimum(pixel.clamp_min(0), torch.tensor([source.shape[-1] - 1, source.shape[-2] - 1]))
+        colour = source.expand(3, -1, -1)[:, pixel[:, 1], pixel[:, 0]].T
+        point_colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
     return Reconstruction(
         cameras=Camera(model.K[views], model.R[views], model.t[views]),
         image_names=[names[v] for v in views.tolist()],
         image_sizes=torch.tensor([[W, H]] * views.numel()),
         points3d=model.points[point_tracks],
-        colors=colours,
+        colors=point_colours,
         observation_points=point_of[tracks.track[keep]],
         observation_views=camera_of[tracks.view[keep]],
         keypoints=model.pixels[keep],

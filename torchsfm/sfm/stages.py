@@ -41,6 +41,8 @@ class ViewSet:
 
     Fields:
         images: V decoded images (3 or 1, H, W), one size.
+        colours: per view, where its image holds only the grey of a colour file (to bound
+            memory), a reduced colour copy the points take their colours from; else None.
         K: (V, 3, 3) intrinsics (replaced by :class:`SelfCalibrate` when ``estimate_focal``).
         distortion: (V, 2) radial coefficients.
         names: view names.
@@ -65,6 +67,7 @@ class ViewSet:
     exif_focal: float | None = None
     generator: torch.Generator = field(default_factory=lambda: torch.Generator().manual_seed(0))
     report: Progress = field(default=lambda message: None)
+    colours: list[Tensor | None] | None = None
     greys: Tensor | None = None
     raw: list[Tensor] | None = None
     corners: list[Tensor] | None = None
@@ -83,7 +86,7 @@ class ViewSet:
     @classmethod
     def of(cls, images: list[Tensor], K: Tensor, *, distortion: Tensor | None = None, names: list[str] | None = None,
            generator: torch.Generator | None = None, progress: Progress | None = None,
-           estimate_focal: bool = False, exif_focal: float | None = None) -> ViewSet:
+           estimate_focal: bool = False, exif_focal: float | None = None, colours: list[Tensor | None] | None = None) -> ViewSet:
         """A state for decoded images of one size with K (3, 3) or (V, 3, 3)."""
         V = len(images)
         sizes = {tuple(image.shape[-2:]) for image in images}
@@ -91,8 +94,9 @@ class ViewSet:
             raise InputError(f"all images must be (3 or 1, H, W) of one size, got {sorted({tuple(i.shape) for i in images})}")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
-        return cls(images=images, K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
-                   estimate_focal=estimate_focal, exif_focal=exif_focal, generator=generator or torch.Generator().manual_seed(0),
+        return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
+                   estimate_focal=estimate_focal, exif_focal=exif_focal, colours=colours,
+                   generator=generator or torch.Generator().manual_seed(0),
                    report=progress or (lambda message: None))
 
 
@@ -101,6 +105,9 @@ class DetectCorners(ConfiguredStage):
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
+        for v, image in enumerate(state.images):  # a grey image becomes a view of its grey: one copy in memory, not two
+            if image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0):
+                state.images[v] = state.greys[v].expand_as(image)
         state.report(f"corners of {len(state.images)} views")
         state.raw = detect(state.greys, self.config)
         state.corners = [undistort_points(raw.double(), state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]

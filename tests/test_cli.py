@@ -115,6 +115,18 @@ def test_reconstruct_command_writes_the_model_and_a_summary(shared_data, tmp_pat
     assert "registering view" in captured.err and "4 views registered" in captured.out
 
 
+def test_reconstruct_reports_a_loose_resection(shared_data, tmp_path, capsys):
+    """Fountain views 8, 0, 4 with disc matching only: view 8 registers at the widened 8 px
+    threshold, and both the summary and the printout say so."""
+    folder = shared_data / "strecha_fountain_P11"
+    images = [str(folder / f"000{v}.jpg") for v in (8, 0, 4)]
+    out = tmp_path / "wide"
+    assert main(["reconstruct", *images, "--K", str(K_FILE), "--set", "pairs.epipolar_matching=false", "--quiet", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["loose_resections"] == [{"index": 0, "threshold_px": 8.0}]
+    assert "view 0 registered at a widened resection threshold of 8 px" in capsys.readouterr().out
+
+
 def test_reconstruct_needs_two_images(tmp_path, capsys):
     assert main(["reconstruct", str(IMAGE1), "--K", str(K_FILE), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "at least 2 images, got 1" in capsys.readouterr().err

@@ -92,6 +92,8 @@ def _reconstruct(args: argparse.Namespace) -> None:
           f"{summary['seconds']['total']:.1f} s")
     for view in summary["unregistered"]:
         print(f"view {view['index']} not registered: {view['reason']}")
+    for view in summary["loose_resections"]:
+        print(f"view {view['index']} registered at a widened resection threshold of {view['threshold_px']:g} px (less certain)")
     _print_moving_objects(summary)
     for body in summary["objects"]:
         print(f"moving body {body['label']} ({body['tracks']} tracks): " + (

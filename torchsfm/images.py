@@ -43,10 +43,16 @@ def to_grey(image: Tensor) -> Tensor:
     return rgb_to_grayscale(image) if image.shape[0] == 3 else image
 
 
+def is_grey_bytes(image: Tensor) -> bool:
+    """Whether a (3 or 1, H, W) image is uint8 grey held as one plane (a grey file as
+    :func:`read_image` returns it, or a single channel)."""
+    return image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0)
+
+
 def to_grey_bytes(image: Tensor) -> Tensor:
     """(3, H, W) or (1, H, W) uint8/float -> (1, H, W) uint8 grey (a quarter of float32's memory;
     exact for grey files)."""
-    if image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0):
+    if is_grey_bytes(image):
         return image[:1].clone()
     return (to_grey(image) * 255).round().to(torch.uint8)
 

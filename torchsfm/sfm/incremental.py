@@ -18,7 +18,7 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import read_image, reduce_image, to_grey_bytes
+from torchsfm.images import is_grey_bytes, read_image, reduce_image, to_grey_bytes
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -106,7 +106,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
                 unreadable[v] = str(error)
                 continue
             exif.append(exif_focal_pixels(path, image.shape[-1], image.shape[-2]) if estimate_focal else None)
-            if image.stride(0) != 0:  # a colour file: its grey for the pipeline, a half-size copy for the colours (memory)
+            if not is_grey_bytes(image):  # a colour file: its grey for the pipeline, a half-size copy for the colours (memory)
                 image, colour = to_grey_bytes(image), reduce_image(image, COLOUR_REDUCTION)
         else:
             exif.append(None)

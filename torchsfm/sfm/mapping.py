@@ -14,6 +14,7 @@ from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, res
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
+from torchsfm.geometry.rotation import angle_between
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
 from torchsfm.reconstruction import Reconstruction
@@ -106,10 +107,10 @@ class MapperState:
         settings = self.config.reconstruction
         good = torch.isfinite(X).all(-1)
         for views, pixels in ((partners, x_partner), (torch.full_like(partners, view), x_view)):
-            camera_points = (self.R[views] @ X[..., None])[..., 0] + self.t[views]
-            projected = (self.K[views] @ camera_points[..., None])[..., 0]
-            error = (projected[..., :2] / projected[..., 2:] - pixels).norm(dim=-1)
-            good &= (camera_points[:, 2] > 0) & (error < settings.max_reprojection_error)
+            camera = Camera(self.K[views], self.R[views], self.t[views])  # one camera per point
+            depth = camera.world_to_camera(X[:, None])[:, 0, 2]
+            error = (camera.project(X[:, None])[:, 0] - pixels).norm(dim=-1)
+            good &= (depth > 0) & (error < settings.max_reprojection_error)
         centres = self.centres()
         return good & (triangulation_angle(X, centres[partners], centres[view]) >= settings.min_point_angle)
 
@@ -160,9 +161,7 @@ def parallax_angles(matches: list[PairMatches], keys: list[tuple[int, int]], cor
         K1, K2 = K[[i for (i, _), _ in chunk]].double(), K[[j for (_, j), _ in chunk]].double()
         E = essential_from_fundamental(torch.stack([m.F.double() for _, m in chunk]), K1, K2)
         R, _, _ = select_pose(*POSE_CANDIDATES["svd"](E), x1, x2, valid.double())
-        ray1, ray2 = to_homogeneous(x1), to_homogeneous(x2) @ R  # Rᵀ x̃_j as rows
-        cosine = (ray1 * ray2).sum(-1) / (ray1.norm(dim=-1) * ray2.norm(dim=-1))
-        angle = torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))
+        angle = angle_between(to_homogeneous(x1), to_homogeneous(x2) @ R)  # x̃_i and Rᵀ x̃_j (as rows)
         angles.append(torch.where(valid, angle, torch.nan).nanmedian(-1).values)
     return torch.cat(angles) if angles else torch.zeros(0, dtype=torch.float64)
 

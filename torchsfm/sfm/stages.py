@@ -23,7 +23,7 @@ from torchsfm.camera import undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
-from torchsfm.images import to_grey_bytes
+from torchsfm.images import is_grey_bytes, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
@@ -106,7 +106,7 @@ class DetectCorners(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
         for v, image in enumerate(state.images):  # a grey image becomes a view of its grey: one copy in memory, not two
-            if image.dtype == torch.uint8 and (image.shape[0] == 1 or image.stride(0) == 0):
+            if is_grey_bytes(image):
                 state.images[v] = state.greys[v].expand_as(image)
         state.report(f"corners of {len(state.images)} views")
         state.raw = detect(state.greys, self.config)
@@ -197,11 +197,16 @@ class RematchUnregistered(ConfiguredStage):
         rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
         retry = Pipeline(BuildTracks(), RejectMovingObjects(self.config), MapIncrementally(self.config))
         second = retry(replace(state, pairs={**state.pairs, **rematched}))
-        ranking = lambda model: (len(model.view_indices), -len(model.loose_resections))  # noqa: E731
-        better = ranking(second.reconstruction) > ranking(first)
+        better = _standing(second.reconstruction) > _standing(first)
         state.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
                      + ("kept" if better else "the first model kept"))
         return second if better else state
+
+
+def _standing(model: Reconstruction) -> tuple[int, int]:
+    """How a model ranks against another of the same views: more views registered, then fewer
+    of them loosely."""
+    return len(model.view_indices), -len(model.loose_resections)
 
 
 class MapIncrementally(ConfiguredStage):

@@ -125,13 +125,15 @@ def oriented_side(F: Tensor, x1: Tensor, x2: Tensor, inliers1: Tensor, inliers2:
     e2 × x2 and F x1 are the same line with one sign. A match on the other side would put its
     point behind a camera; in forward motion (the epipole inside the image) it halves the band.
     The sign is the verified matches' majority."""
-    e2 = torch.linalg.svd(F.T)[2][-1]  # Fᵀ e2 = 0, up to sign: the majority sign absorbs it
-    def side(a: Tensor, b: Tensor) -> Tensor:  # (A, B) sign of (e2 × b) · (F a)
-        lines = to_homogeneous(a) @ F.T  # (A, 3)
-        through = torch.linalg.cross(e2.expand(b.shape[0], 3), to_homogeneous(b))  # (B, 3)
-        return lines @ through.T
-    sign = torch.sign(torch.diagonal(side(inliers1, inliers2)).sum())
-    return side(x1, x2) * sign > 0
+    e2 = torch.linalg.svd(F.T).Vh[-1]  # Fᵀ e2 = 0, up to sign: the majority sign absorbs it
+
+    def lines_and_rays(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:  # F a (A, 3) and e2 × b (B, 3)
+        return to_homogeneous(a) @ F.T, torch.linalg.cross(e2.expand(b.shape[0], 3), to_homogeneous(b))
+
+    lines, rays = lines_and_rays(inliers1, inliers2)
+    majority = torch.sign(torch.sign((lines * rays).sum(-1)).sum())  # one sign per verified match, then the vote
+    lines, rays = lines_and_rays(x1, x2)
+    return (lines @ rays.T) * majority > 0
 
 
 def patch_warps(H: Tensor, points: Tensor) -> Tensor | None:

@@ -215,3 +215,46 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     pairs = frame_pairs(short)
     assert median_span(short) == 2 and median_span(full) == 9
     assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28
+
+
+def room_corner(seed: int, frames: int = 10, noise: float = 0.3):
+    """Tracks of a static room corner — two walls (x = 0, z = 8) and a floor (y = 2), 60 points
+    each — and a 60-point board parallel to the wall z = 8 sliding along it, over ``frames`` frames
+    of a camera that moves sideways and turns: (F, 240, 2) pixels and the labels 0, 1, 2 (the
+    three planes) and 3 (the board)."""
+    from torchsfm.testing.scenes import look_at_rotation
+
+    generator = torch.Generator().manual_seed(seed)
+    uniform = lambda *shape: torch.rand(*shape, generator=generator, dtype=torch.float64)  # noqa: E731
+    wall = torch.stack([torch.zeros(60), -2 + 4 * uniform(60), 4 + 4 * uniform(60)], 1)
+    back = torch.stack([4 * uniform(60), -2 + 4 * uniform(60), torch.full((60,), 8.0, dtype=torch.float64)], 1)
+    floor = torch.stack([4 * uniform(60), torch.full((60,), 2.0, dtype=torch.float64), 4 + 4 * uniform(60)], 1)
+    board = torch.stack([1 + 1.5 * uniform(60), -1 + 1.5 * uniform(60), torch.full((60,), 6.0, dtype=torch.float64)], 1)
+    K = torch.tensor([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]], dtype=torch.float64)
+    tracks = []
+    for f in range(frames):
+        centre = torch.tensor([1.0 + 0.15 * f, -0.3 + 0.05 * f, -2.0], dtype=torch.float64)
+        R = look_at_rotation(centre, torch.tensor([2.0, 0.0, 6.0], dtype=torch.float64))
+        points = torch.cat([wall, back, floor, board + torch.tensor([0.12 * f, -0.04 * f, 0.0], dtype=torch.float64)])
+        camera = (points - centre) @ R.T @ K.T
+        tracks.append(camera[:, :2] / camera[:, 2:])
+    tracks = torch.stack(tracks) + noise * torch.randn(frames, 240, 2, generator=generator, dtype=torch.float64)
+    return tracks, torch.arange(4).repeat_interleave(60)
+
+
+def test_a_planar_scene_joins_the_planes_a_third_one_corroborates():
+    """A scene found as one wall (no parallax) cannot judge another motion by itself: the wall
+    and the sliding board parallel to it are one projective rigid body. The union of the wall
+    with the other wall explains the floor too (corroborated): all three planes become the
+    scene and the board stays a body. With the wall and the board only, nothing is joined."""
+    from torchsfm.moving.segmentation import frame_pairs, grow_planar_scene
+
+    tracks, truth = room_corner(0)
+    visible = torch.ones(tracks.shape[:2], dtype=torch.bool)
+    config, generator = SegmentationConfig(), torch.Generator().manual_seed(0)
+    grown = grow_planar_scene(tracks, visible, truth, frame_pairs(visible), config, generator)
+    assert grown.tolist() == [0] * 180 + [1] * 60
+    two = truth[(truth == 0) | (truth == 3)].clamp_max(1)
+    kept = (truth == 0) | (truth == 3)
+    alone = grow_planar_scene(tracks[:, kept], visible[:, kept], two, frame_pairs(visible), config, generator)
+    assert alone.tolist() == two.tolist()

@@ -422,19 +422,28 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.affine_frames, 4,
                                                config, generator, guide)
     H, m = frames.shape
-    N = tracks.shape[1]
+    F, N, _ = tracks.shape
+    centred = torch.where(visible[..., None], tracks - tracks[visible].mean(0), 0.0)  # smaller terms to cancel
+    flat = centred.permute(1, 0, 2).reshape(N, 2 * F)  # every track's trajectory: x, y of frame 0, of frame 1, ...
+    columns = (2 * frames[..., None] + torch.arange(2, device=tracks.device)).reshape(H, 2 * m)
+    chosen = flat[sample[..., None], columns[:, None]]  # (H, 4, 2m) the sample's trajectories
+    origin = chosen[:, 0]
+    basis, triangle = torch.linalg.qr((chosen[:, 1:] - origin[:, None]).transpose(1, 2))  # (H, 2m, 3)
+    extent = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
+    rows = torch.arange(H, device=tracks.device)[:, None]
+    select = flat.new_zeros(H, 2 * F).index_put_((rows, columns), flat.new_ones(()))
+    origin_full = flat.new_zeros(H, 2 * F).index_put_((rows, columns), origin)
+    basis_full = flat.new_zeros(H, 2 * F, 3).index_put_((rows, columns), basis)
+    origin_norm = origin.square().sum(1, keepdim=True)
+    origin_in_basis = (basis * origin[..., None]).sum(1)  # (H, 3)
     residual = tracks.new_empty(H, N)
-    extent = tracks.new_empty(H)
-    chunk = max(1, CHUNK_ELEMENTS // (N * 2 * m))  # hypotheses at a time: (chunk, N, 2m) trajectories
-    for first in range(0, H, chunk):
-        rows = slice(first, first + chunk)
-        trajectories = tracks[frames[rows]].permute(0, 2, 1, 3).reshape(-1, N, 2 * m)  # (h, N, 2m)
-        origin = trajectories[torch.arange(trajectories.shape[0], device=tracks.device), sample[rows, 0]]  # (h, 2m)
-        spans = trajectories.gather(1, sample[rows, 1:, None].expand(-1, -1, 2 * m)) - origin[:, None]  # (h, 3, 2m)
-        basis, triangle = torch.linalg.qr(spans.transpose(1, 2))  # (h, 2m, 3)
-        extent[rows] = triangle.diagonal(dim1=1, dim2=2).abs().amin(1)
-        offsets = trajectories - origin[:, None]  # distance to the span: |o|² - |Bᵀo|² (B orthonormal)
-        residual[rows] = (offsets.square().sum(-1) - (offsets @ basis).square().sum(-1)).clamp_min(0).sqrt() / m ** 0.5
+    chunk = max(1, CHUNK_ELEMENTS // (3 * N))  # hypotheses at a time: (chunk, 3, N) projections
+    for first in range(0, H, chunk):  # distance² to the span: |t - o|² - |Bᵀ(t - o)|², B orthonormal
+        part = slice(first, first + chunk)
+        offset_norm = select[part] @ flat.square().T - 2 * origin_full[part] @ flat.T + origin_norm[part]
+        axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
+        projection = (axes.reshape(-1, 2 * F) @ flat.T).reshape(-1, 3, N) - origin_in_basis[part, :, None]
+        residual[part] = (offset_norm - projection.square().sum(1)).clamp_min(0).sqrt() / m ** 0.5
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]
     return residual, defined.scatter(1, sample, False)

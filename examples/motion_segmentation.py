@@ -21,7 +21,7 @@ MSMC 0.3–0.8 % (Xu, Cheong & Li, CVPR 2018); KT3DMoSeg — MSMC 8–10 % (Xu e
 With ``--png DIR``, a picture per sequence of its tracks coloured by the labels found
 (``torchsfm.visualization.segmentation_figure``; the static scene grey, unassigned black).
 
-    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR] [--set KEY=VALUE ...]
+    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR] [--seed 0] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -90,6 +90,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--png", type=Path, default=None, help="write a picture of each segmentation here")
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (the figures vary with it)")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="config overrides, e.g. segmentation.models=fundamental,affine,homography")
     args = parser.parse_args()
@@ -100,12 +101,12 @@ def main() -> None:
     for name, sequence in sequences(args.data):
         truth = sequence.labels
         motions = int(truth.max()) + 1
-        generator = torch.Generator().manual_seed(0)
+        generator = torch.Generator().manual_seed(args.seed)
         start = time.perf_counter()
         found = segment_motions(sequence.tracks, sequence.visible, config=config, generator=generator)
         seconds = time.perf_counter() - start
         given = segment_motions(sequence.tracks, sequence.visible, config=config, num_motions=motions,
-                                generator=torch.Generator().manual_seed(0))
+                                generator=torch.Generator().manual_seed(args.seed))
         baseline = opencv_sequential_ransac(sequence, motions)
         if args.png is not None:
             picture = segmentation_figure(sequence.tracks, sequence.visible, found.labels, sequence.image_size)

@@ -21,7 +21,7 @@ tracks, an untested track counting as rejected. Pooled figures per data set at t
 seconds of the whole-track calls (``triplets``, ``rigid_groups`` and ``both`` come from one call;
 ``segmentation`` is a second one).
 
-    python examples/moving_objects_real.py [--data ../shared/data]
+    python examples/moving_objects_real.py [--data ../shared/data] [--seed 0]
 """
 
 from __future__ import annotations
@@ -65,10 +65,11 @@ def figures(background: torch.Tensor, labels: torch.Tensor) -> tuple[int, int, i
     return int((background & moving).sum()), int(moving.sum()), int((~background & ~moving).sum()), int((~moving).sum())
 
 
-def evaluate(sequence: MotionTracks, config: Config
+def evaluate(sequence: MotionTracks, config: Config, seed: int = 0
              ) -> tuple[dict[str, tuple[int, int, int, int] | None], float, float]:
-    """Every method on one sequence: {method: figures}, and the seconds of the whole-track calls
-    (``both``, which also gives ``triplets`` and ``rigid_groups``; ``segmentation``)."""
+    """Every method on one sequence (random choices seeded with ``seed``): {method: figures}, and
+    the seconds of the whole-track calls (``both``, which also gives ``triplets`` and
+    ``rigid_groups``; ``segmentation``)."""
     tracks, visible, labels = sequence.tracks, sequence.visible, sequence.labels
     F = tracks.shape[0]
     k = (F - 1) // 2
@@ -77,10 +78,10 @@ def evaluate(sequence: MotionTracks, config: Config
     rows: dict[str, tuple[int, int, int, int] | None] = {}
     usac = opencv_usac(triplet)
     rows["OpenCV RANSAC"] = None if usac is None else figures(usac, labels[seen])
-    cascade = reject_moving_objects(*triplet, config=config, generator=torch.Generator().manual_seed(0))
+    cascade = reject_moving_objects(*triplet, config=config, generator=torch.Generator().manual_seed(seed))
     rows["IMOR + RANSAC"] = figures(cascade.background_mask, labels[seen])
     start = time.perf_counter()
-    result = reject_moving_objects_in_tracks(tracks, visible, config=config, generator=torch.Generator().manual_seed(0))
+    result = reject_moving_objects_in_tracks(tracks, visible, config=config, generator=torch.Generator().manual_seed(seed))
     seconds = time.perf_counter() - start
     share = config.moving_objects.min_rejection_share
     votes = ~result.rejection_share.isnan() & (result.rejection_share < share)
@@ -89,7 +90,7 @@ def evaluate(sequence: MotionTracks, config: Config
     rows["both"] = figures(result.background_mask, labels)
     segmentation = with_overrides(config, ["moving_objects.track_method=segmentation"])
     start = time.perf_counter()
-    result = reject_moving_objects_in_tracks(tracks, visible, config=segmentation, generator=torch.Generator().manual_seed(0))
+    result = reject_moving_objects_in_tracks(tracks, visible, config=segmentation, generator=torch.Generator().manual_seed(seed))
     rows["segmentation"] = figures(result.background_mask, labels)
     return rows, seconds, time.perf_counter() - start
 
@@ -101,6 +102,7 @@ def percent(kept: int, total: int) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (the figures vary with it)")
     args = parser.parse_args()
     config = with_overrides(Config(), ["moving_objects.track_method=both"])
     sets = {
@@ -113,7 +115,7 @@ def main() -> None:
         print(f"{'sequence':16s} {'N':>5s} | {header} | s (both) | s (segmentation)")
         pooled = {m: [0, 0, 0, 0] for m in METHODS}
         for sequence in sequences:
-            rows, seconds, segmentation_seconds = evaluate(sequence, config)
+            rows, seconds, segmentation_seconds = evaluate(sequence, config, args.seed)
             cells = []
             for method in METHODS:
                 row = rows[method]

@@ -88,14 +88,18 @@ def test_noise_free_problems_converge_to_zero_cost(model, solver):
         assert_close(result.problem.translations[0], start.translations[0], rtol=0, atol=0)
 
 
-def test_the_dense_solver_s_two_paths_agree(monkeypatch):
+@pytest.mark.parametrize("chunk_numbers", [2**22, 7 * 36])
+def test_the_dense_solver_s_two_paths_agree(monkeypatch, chunk_numbers):
     """The reduced camera system built from per-point blocks equals the one of the GEMM path,
-    which a memory budget of zero rules out. (By default this ring takes the GEMM path: its
-    tracks of n = 4 views among C = 12 give 100 n² > 3 C², the crossover of ``_dense``.)"""
+    which a memory budget of zero rules out, whether the blocks are formed all at once or a few
+    points at a time (``BLOCK_CHUNK_NUMBERS``: here 7 blocks, under one point's n² = 16). (By
+    default this ring takes the GEMM path: its tracks of n = 4 views among C = 12 give
+    100 n² > 3 C², the crossover of ``_dense``.)"""
     _, start = _ring("pinhole", cameras=12, noise=0.5)
     config = BundleAdjustmentConfig(linear_solver="dense")
     gemm = bundle_adjust(start, config=config)
     monkeypatch.setattr("torchsfm.optim.bundle.DENSE_BUFFER_BYTES", 0)
+    monkeypatch.setattr("torchsfm.optim.bundle.BLOCK_CHUNK_NUMBERS", chunk_numbers)
     blocks = bundle_adjust(start, config=config)
     assert_close(blocks.problem.points, gemm.problem.points, rtol=0, atol=1e-9)
     assert_close(blocks.final_cost, gemm.final_cost, rtol=1e-9, atol=0)

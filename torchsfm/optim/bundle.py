@@ -40,6 +40,7 @@ from torchsfm.validation import check_finite, check_shapes
 
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
 DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
+BLOCK_CHUNK_NUMBERS = 2**22  # its block path forms the camera-pair blocks of this many numbers at a time (32 MiB)
 INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0),
                         "cx": (0.0, 0.0, 1.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy)
 
@@ -296,11 +297,14 @@ class _SchurLinearization:
         if block_numbers * 100 <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
             blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype, device=U.device)
             for observations, block_index in zip(problem.track_groups, problem.block_indices()):  # (P_n, n) ids, (P_n n n,) S blocks
-                P_n, n = observations.shape
-                left = Y[observations].reshape(P_n, n * dc, 3)
-                right = self.W[observations].reshape(P_n, n * dc, 3)
-                products = (left @ right.transpose(1, 2)).reshape(P_n, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc)
-                blocks.index_add_(0, block_index, products)
+                n = observations.shape[1]
+                rows = max(1, BLOCK_CHUNK_NUMBERS // (n * n * dc * dc))  # points at a time: bounded products
+                for first in range(0, observations.shape[0], rows):
+                    part = observations[first:first + rows]
+                    left = Y[part].reshape(-1, n * dc, 3)
+                    right = self.W[part].reshape(-1, n * dc, 3)
+                    products = (left @ right.transpose(1, 2)).reshape(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc)
+                    blocks.index_add_(0, block_index[first * n * n:(first + part.shape[0]) * n * n], products)
             reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
             del blocks
         else:

@@ -545,8 +545,6 @@ class SegmentationConfig:
     clustered and every other track goes to the motion whose fundamental matrices explain it
     best, within 3× that motion's median residual (else it is left unassigned). When the number
     of motions is found (not given), the static scene becomes what its rigid motion explains:
-    a scene without parallax first joins the motions that its union with one of them shows to be
-    static, corroborated by a third (:func:`torchsfm.moving.segmentation.grow_planar_scene`);
     other motions it explains join it, pieces of it that it does not explain are cut out as
     moving bodies — a track is explained within the larger of ``scene_tolerance`` px (the
     tracker's noise floor) and the χ² bound at ``scene_significance``, a motion or piece by the

@@ -35,11 +35,9 @@ minimal-sample models:
    sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
    rigidity votes reject least); callers holding better evidence choose another label as the
    scene (``sizes`` and ``coverage`` are per label).
-6. **The scene settled** (number of motions found, not given): a scene without parallax (one
-   wall of a room) first joins the other motions that a corroborated union with it shows to be
-   static (:func:`grow_planar_scene`); then motions the scene's rigid motion explains join it,
-   pieces of it that it does not explain are cut out as bodies (:func:`settle_scene`,
-   :func:`scene_excess`).
+6. **The scene settled** (number of motions found, not given): motions the scene's rigid motion
+   explains join it, pieces of it that it does not explain are cut out as bodies
+   (:func:`settle_scene`, :func:`scene_excess`).
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
@@ -231,8 +229,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
 
     The preference clustering may merge a body into the scene when their epipolar geometry
     nearly agrees over the sampled frames (a car driving along the camera's direction), and may
-    split a scene of several planes. A scene without parallax is first grown by
-    :func:`grow_planar_scene`. Every track's residual under the scene's rigid motion is
+    split a scene of several planes. Every track's residual under the scene's rigid motion is
     weighed against its noise bound (:func:`scene_excess`): a motion with at most half its
     tracks beyond it joins the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`)
     with more than half its tracks beyond it is cut. The cut pieces are merged into bodies by
@@ -250,9 +247,8 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     Returns:
         (N,) int64 labels, the motions renumbered 0..k' in their order.
     """
-    pairs = frame_pairs(visible)
-    labels = grow_planar_scene(tracks, visible, labels, pairs, config, generator)
     scene = labels == 0
+    pairs = frame_pairs(visible)
     excess = scene_excess(tracks, visible, scene, pairs, config, generator)
     labels = labels.clone()
     for motion in range(1, int(labels.max()) + 1):
@@ -272,42 +268,6 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     members[bodies, clustered[position]] = True
     rigid = motion_residuals(tracks, visible, members, pairs) <= config.scene_tolerance
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
-    return labels
-
-
-def grow_planar_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,
-                      generator: torch.Generator) -> Tensor:
-    """Join to a planar static scene (label 0) the motions that a corroborated union shows to be
-    static: (N,) labels -> (N,) labels, motions renumbered in their order.
-
-    A scene without parallax (one homography per frame pair explains it within
-    ``config.scene_tolerance``) cannot judge another motion by itself: its fundamental matrices
-    are undetermined. Each union of the scene with one other motion m is reconstructed
-    (:func:`scene_excess`) and every motion is called explained by it when the median of its
-    tracks' excess is at most 1. That the union explains the scene and m proves nothing —
-    a plane and any other plane-like motion are always one projective rigid body (a
-    projective map fixing the scene's plane pointwise moves the other plane as it moved) — so a
-    union counts only when it also explains a third motion it was not fitted to, and not every
-    motion (a test that accepts everything cannot tell the scene from the bodies). The union
-    explaining the most tracks is joined with every motion it explains.
-    """
-    scene = labels == 0
-    plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
-    if float(plane[0][judged[0] & scene].median()) > config.scene_tolerance:
-        return labels
-    count = int(labels.max()) + 1
-    sizes = torch.bincount(labels[labels >= 0], minlength=count)
-    best, joined = 0, None
-    for motion in range(1, count):
-        excess = scene_excess(tracks, visible, scene | (labels == motion), pairs, config, generator)
-        explained = torch.stack([excess[labels == m].nanmedian() <= 1 for m in range(count)])
-        corroborated = bool(explained[0] & explained[motion]) and 3 <= int(explained.sum()) < count
-        if corroborated and int(sizes[explained].sum()) > best:
-            best, joined = int(sizes[explained].sum()), explained
-    if joined is None:
-        return labels
-    labels = torch.where((labels >= 0) & joined[labels.clamp_min(0)], 0, labels)
-    _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
     return labels
 
 

@@ -227,7 +227,7 @@ def sampson_error(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
 
 
 def sampson_error_of_hypotheses(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """Sampson error (pixels²) of H hypotheses on the same points, as two GEMMs per problem.
+    """Sampson error (pixels²) of H hypotheses on the same points, as three GEMMs per problem.
 
     F (B, H, 3, 3), x1, x2 (B, N, 2) -> (B, H, N); computed in the dtype of the inputs. The
     algebraic error is (x2 ⊗ x1)·vec(F) and the line components are an (N, 3) x (3, 2H) product

@@ -397,12 +397,13 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
     origin_norm = origin.square().sum(1, keepdim=True)
     origin_in_basis = (basis * origin[..., None]).sum(1)  # (H, 3)
     residual = tracks.new_empty(H, N)
+    trajectories, squares = flat.T, flat.square().T  # (2F, N)
     chunk = max(1, CHUNK_ELEMENTS // (3 * N))  # hypotheses at a time: (chunk, 3, N) projections
     for first in range(0, H, chunk):  # distance² to the span: |t - o|² - |Bᵀ(t - o)|², B orthonormal
         part = slice(first, first + chunk)
-        offset_norm = select[part] @ flat.square().T - 2 * origin_full[part] @ flat.T + origin_norm[part]
+        offset_norm = select[part] @ squares - 2 * origin_full[part] @ trajectories + origin_norm[part]
         axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
-        projection = (axes.reshape(-1, 2 * F) @ flat.T).reshape(-1, 3, N) - origin_in_basis[part, :, None]
+        projection = (axes.reshape(-1, 2 * F) @ trajectories).reshape(-1, 3, N) - origin_in_basis[part, :, None]
         residual[part] = (offset_norm - projection.square().sum(1)).clamp_min(0).sqrt() / m ** 0.5
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]

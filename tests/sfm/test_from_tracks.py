@@ -96,7 +96,7 @@ def test_the_pipeline_stage_reconstructs_each_moving_body_and_places_it_in_the_s
                                lambda message: None)
     state.reconstruction = map_incrementally(state, Config())
     before = state.reconstruction.num_points
-    result = ReconstructObjects(Config())(state).reconstruction
+    result = ReconstructObjects()(state).reconstruction
     assert result.num_points >= before + 55  # the scene's piece is back
     objects = result.objects
     assert [body.label for body in objects] == [1, 2, 3]

@@ -232,5 +232,5 @@ def test_colour_files_are_held_as_grey_and_still_colour_their_points():
     view = torch.tensor(model.view_indices)[model.observation_views[first]]
     truth = torch.stack([full[v][:, y, x] for v, (x, y) in zip(view.tolist(), pixel.tolist())])
     assert float((model.colors.float() - truth.float()).abs().mean()) < 15
-    state = DetectCorners(Config().harris)(ViewSet.of([full[0][:1].expand(3, -1, -1)], sample.K[0]))
+    state = DetectCorners()(ViewSet.of([full[0][:1].expand(3, -1, -1)], sample.K[0]))
     assert state.images[0].data_ptr() == state.greys[0].data_ptr()  # a grey image is a view of its grey

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import replace
+
+import pytest
 import torch
 from torch import nn
 
 import torchsfm
 from torchsfm.actions import SAMPLE
+from torchsfm.config import MatchingConfig
+from torchsfm.errors import ConfigError
 from torchsfm.images import read_image
+from torchsfm.sfm.from_tracks import ReconstructObjects
+from torchsfm.sfm.pipeline import ConfiguredStage
 from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline
 from torchsfm.sfm.two_view import PairState, TwoViewReconstruction
 from torchsfm.sfm.view_pairs import putative_matches
@@ -70,3 +78,29 @@ def test_two_view_stages_insert_a_user_stage():
     first_view = model.keypoints[model.observation_views == 0]
     assert model.num_points > 50 and bool((first_view[:, 0] < images[0].shape[-1] / 2).all())
     assert "LeftHalfOnly" in model.timings
+
+
+def test_a_stage_holds_only_its_config_sections():
+    config = torchsfm.Config()
+    config = replace(config, matching=replace(config.matching, ncc_threshold=0.7), harris=replace(config.harris, max_corners=99))
+    stage = MatchPairs.from_config(config)
+    assert stage.config.matching.ncc_threshold == 0.7 and stage.config.pairs == config.pairs
+    with pytest.raises(ConfigError, match="MatchPairs reads config harris.max_corners"):
+        stage.config.harris.max_corners
+    built = MatchPairs(matching=MatchingConfig(ncc_threshold=0.7))  # the sections not given keep their defaults
+    assert built.config.matching == stage.config.matching and built.config.reconstruction == torchsfm.Config().reconstruction
+    with pytest.raises(ConfigError, match="takes no harris"):
+        MatchPairs(harris=config.harris)
+
+
+def test_every_default_stage_declares_what_it_reads():
+    """The whole default pipeline, the rematching, the moving-object decision and the per-body
+    models run on stages holding only their sections: an undeclared read would raise."""
+    config = torchsfm.Config()
+    config = replace(config, moving_objects=replace(config.moving_objects, enabled=True, reconstruct_objects=True))
+    pipeline = default_pipeline(config)
+    pipeline.append(ReconstructObjects.from_config(config))
+    assert all(set(stage.SECTIONS) < {field.name for field in dataclasses.fields(config)}
+               for stage in pipeline if isinstance(stage, ConfiguredStage))
+    model = torchsfm.reconstruct(_images(), K, pipeline=pipeline)
+    assert model.num_views == 3 and model.segmented_tracks is not None

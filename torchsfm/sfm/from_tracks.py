@@ -182,6 +182,9 @@ class ReconstructObjects(ConfiguredStage):
     body's colour of :data:`~torchsfm.visualization.MOTION_COLOURS`). Fills
     ``reconstruction.objects`` (views by the state's indices) and ``segmented_tracks``."""
 
+    SECTIONS = ("moving_objects", "reconstruction", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose",
+                "fundamental")
+
     def forward(self, state: ViewSet) -> ViewSet:
         labels = state.track_labels.clone()
         pixels, visible = state.all_tracks.dense(state.corners, len(state.corners))

@@ -130,7 +130,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if pipeline is None:
         pipeline = default_pipeline(config)
         if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
-            pipeline.append(ReconstructObjects(config))
+            pipeline.append(ReconstructObjects.from_config(config))
     state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
                        progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif), colours=colours)
     del loaded, colours  # the state holds the images now (and may replace them by lighter copies)

@@ -25,6 +25,8 @@ class DetectSiftFeatures(ConfiguredStage):
     """SIFT keypoints and descriptors of every view, one view at a time: fills ``greys``, ``raw``
     (keypoint centres, pixels), ``corners`` (undistorted) and ``descriptors`` ((K_v, 128) each)."""
 
+    SECTIONS = ("pairs",)
+
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
         state.report(f"SIFT features of {len(state.images)} views")
@@ -43,6 +45,8 @@ class MatchSiftFeatures(ConfiguredStage):
     """The pairs ``config.pairs`` selects (coarse scores as for NCC), each matched by mutual
     nearest descriptors passing the ratio test; pairs with fewer than ``min_pair_inliers``
     matches are dropped: fills ``putative``."""
+
+    SECTIONS = ("pairs", "reconstruction")
 
     def forward(self, state: ViewSet) -> ViewSet:
         config = self.config

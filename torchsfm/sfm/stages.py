@@ -2,14 +2,15 @@
 
 Every stage is an ``nn.Module`` whose ``forward`` takes the :class:`ViewSet` state and returns it
 with its own fields filled; :class:`Pipeline` runs a sequence of them (``nn.Sequential``-like:
-index it, slice it for a prefix, replace or insert a stage) and times each. A stage holds the
-config sections it uses.
+index it, slice it for a prefix, replace or insert a stage) and times each. A configurable
+stage holds the config sections it reads and no others (:class:`ConfiguredStage`).
 
     pipeline = default_pipeline(config)       # DetectCorners, MatchPairs, VerifyPairs,
                                               # SelfCalibrate, BuildTracks, RejectMovingObjects,
                                               # MapIncrementally
     state = pipeline[:3](ViewSet.of(images, K))   # verified pairs only
     pipeline[1] = MyMatcher()                 # any module: ViewSet -> ViewSet
+    pipeline[2] = VerifyPairs(fundamental=FundamentalConfig(minimal_solver="seven_point"))
 """
 
 from __future__ import annotations
@@ -103,13 +104,15 @@ class ViewSet:
 class DetectCorners(ConfiguredStage):
     """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
 
+    SECTIONS = ("harris",)
+
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
         for v, image in enumerate(state.images):  # a grey image becomes a view of its grey: one copy in memory, not two
             if is_grey_bytes(image):
                 state.images[v] = state.greys[v].expand_as(image)
         state.report(f"corners of {len(state.images)} views")
-        state.raw = detect(state.greys, self.config)
+        state.raw = detect(state.greys, self.config.harris)
         state.corners = [undistort_points(raw.double(), state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
         return state
 
@@ -117,6 +120,8 @@ class DetectCorners(ConfiguredStage):
 class MatchPairs(ConfiguredStage):
     """Coarse matching of every view pair, pair selection and guided NCC + strength-measure
     matches of the chosen pairs: fills ``putative`` and ``homographies``."""
+
+    SECTIONS = ("pairs", "matching", "reconstruction")
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
@@ -126,6 +131,8 @@ class MatchPairs(ConfiguredStage):
 class VerifyPairs(ConfiguredStage):
     """Robust F and the homography test of every matched pair: fills ``pairs``."""
 
+    SECTIONS = ("fundamental", "lm", "reconstruction")
+
     def forward(self, state: ViewSet) -> ViewSet:
         state.pairs = verify_pairs(state.putative, state.corners, self.config, state.generator, state.report)
         return state
@@ -134,6 +141,8 @@ class VerifyPairs(ConfiguredStage):
 class SelfCalibrate(ConfiguredStage):
     """Without K: the focal length recorded in the images' EXIF (``exif_focal``) where they have
     one, else estimated from the verified pairs' F; the principal point at the image centre."""
+
+    SECTIONS = ("reconstruction",)
 
     def forward(self, state: ViewSet) -> ViewSet:
         if not state.estimate_focal:
@@ -162,6 +171,8 @@ class BuildTracks(nn.Module):
 class RejectMovingObjects(ConfiguredStage):
     """With ``moving_objects.enabled``: keep the tracks the whole-track decision keeps."""
 
+    SECTIONS = ("moving_objects", "segmentation", "fundamental", "lm")
+
     def forward(self, state: ViewSet) -> ViewSet:
         if self.config.moving_objects.enabled:
             everything = state.tracks
@@ -181,7 +192,15 @@ class RematchUnregistered(ConfiguredStage):
     bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
     run again; the model that registers more views, or as many with fewer loose resections, is
     kept. Costs nothing where every view registers at the threshold, or where the others form
-    separate groups."""
+    separate groups. ``retry`` is the pipeline run again on the rematched pairs (default: the
+    default stages :class:`BuildTracks`, :class:`RejectMovingObjects`, :class:`MapIncrementally`
+    at their default settings)."""
+
+    SECTIONS = ("matching", "pairs", "fundamental")
+
+    def __init__(self, retry: Pipeline | None = None, **sections) -> None:
+        super().__init__(**sections)
+        self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
 
     def forward(self, state: ViewSet) -> ViewSet:
         first = state.reconstruction
@@ -195,8 +214,7 @@ class RematchUnregistered(ConfiguredStage):
         state.report(f"{len(stranded)} views unregistered or loosely registered: matching {len(weak)} verified pairs of them "
                      "and their partners along epipolar lines")
         rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
-        retry = Pipeline(BuildTracks(), RejectMovingObjects(self.config), MapIncrementally(self.config))
-        second = retry(replace(state, pairs={**state.pairs, **rematched}))
+        second = self.retry(replace(state, pairs={**state.pairs, **rematched}))
         better = _standing(second.reconstruction) > _standing(first)
         state.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
                      + ("kept" if better else "the first model kept"))
@@ -213,6 +231,8 @@ class MapIncrementally(ConfiguredStage):
     """Initial pair, resection and triangulation of every next view, bundle adjustment (and, when
     K was estimated, its refinement): fills ``reconstruction``."""
 
+    SECTIONS = ("reconstruction", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose", "fundamental")
+
     def forward(self, state: ViewSet) -> ViewSet:
         state.reconstruction = map_incrementally(state, self.config)
         state.reconstruction.moving_objects = state.rejections
@@ -221,10 +241,13 @@ class MapIncrementally(ConfiguredStage):
 
 
 def default_pipeline(config: Config | None = None) -> Pipeline:
-    """The stages of :func:`torchsfm.reconstruct` (SIFT's two first with ``pairs.matcher`` ``sift``)."""
+    """The stages of :func:`torchsfm.reconstruct` (SIFT's two first with ``pairs.matcher``
+    ``sift``), each given its sections of ``config``."""
     config = config or Config()
     sift = config.pairs.matcher == "sift"
-    features = (DetectSiftFeatures(config), MatchSiftFeatures(config)) if sift else (DetectCorners(config.harris), MatchPairs(config))
-    rematch = (RematchUnregistered(config),) if config.pairs.epipolar_matching and not sift else ()
-    return Pipeline(*features, VerifyPairs(config), SelfCalibrate(config), BuildTracks(), RejectMovingObjects(config),
-                    MapIncrementally(config), *rematch)
+    features = (DetectSiftFeatures, MatchSiftFeatures) if sift else (DetectCorners, MatchPairs)
+    reject, mapper = RejectMovingObjects.from_config(config), MapIncrementally.from_config(config)
+    rematch = (RematchUnregistered.from_config(config, retry=Pipeline(BuildTracks(), reject, mapper)),) \
+        if config.pairs.epipolar_matching and not sift else ()
+    return Pipeline(*(stage.from_config(config) for stage in features), VerifyPairs.from_config(config),
+                    SelfCalibrate.from_config(config), BuildTracks(), reject, mapper, *rematch)

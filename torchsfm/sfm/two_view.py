@@ -90,13 +90,15 @@ class PairState:
 
 
 class DetectPairCorners(ConfiguredStage):
-    """Harris corners of each image (batched; ``HarrisConfig``), at least 8 each, undistorted:
+    """Harris corners of each image (batched; ``harris``), at least 8 each, undistorted:
     fills ``greys``, ``raw``, ``points``."""
+
+    SECTIONS = ("harris",)
 
     def forward(self, state: PairState) -> PairState:
         state.report("corners ...")
         state.greys = torch.stack([to_grey(image) for image in state.images])
-        corners = detect_corners(state.greys, self.config)
+        corners = detect_corners(state.greys, self.config.harris)
         state.raw = [corners.of_image(v) for v in range(state.greys.shape[0])]
         for view, name in enumerate([*state.names, "third_image"][: state.greys.shape[0]]):
             if state.raw[view].shape[0] < 8:
@@ -109,9 +111,11 @@ class DetectPairCorners(ConfiguredStage):
 
 
 class MatchPair(ConfiguredStage):
-    """NCC + strength-measure matches of image1's corners in image2 (``Config``: ``matching``,
+    """NCC + strength-measure matches of image1's corners in image2 (``matching``,
     ``two_view.min_median_parallax``); at least 8, and a baseline: fills ``matches``, ``x1``,
     ``x2``, ``static`` (all True)."""
+
+    SECTIONS = ("matching", "two_view")
 
     def forward(self, state: PairState) -> PairState:
         state.report("matching ...")
@@ -134,6 +138,8 @@ class RejectMovingMatches(ConfiguredStage):
     in all three frames that IMOR + RANSAC keeps as static (image2 the reference) stay in
     ``static``, the others (untestable ones included) leave it; fills ``rejections``."""
 
+    SECTIONS = ("matching", "moving_objects", "fundamental", "lm")
+
     def forward(self, state: PairState) -> PairState:
         if not state.moving:
             return state
@@ -149,12 +155,13 @@ class RejectMovingMatches(ConfiguredStage):
 
 
 class EstimatePose(ConfiguredStage):
-    """Robust F, E and (R, t), triangulated points of the static matches (``Config``): fills
-    ``pose``."""
+    """Robust F, E and (R, t), triangulated points of the static matches: fills ``pose``."""
 
-    def __init__(self, config: Config) -> None:
-        super().__init__(config)
-        self.estimator = RelativePoseEstimator(config)
+    SECTIONS = ("relative_pose", "fundamental", "lm", "triangulation")
+
+    def __init__(self, **sections) -> None:
+        super().__init__(**sections)
+        self.estimator = RelativePoseEstimator(self.config)
 
     def forward(self, state: PairState) -> PairState:
         state.report("geometry ...")
@@ -198,7 +205,7 @@ class BuildPairModel(nn.Module):
 def two_view_stages(config: Config | None = None) -> Pipeline:
     """The stages of :class:`TwoViewReconstruction`."""
     config = config or Config()
-    return Pipeline(DetectPairCorners(config.harris), MatchPair(config), RejectMovingMatches(config), EstimatePose(config),
+    return Pipeline(*(stage.from_config(config) for stage in (DetectPairCorners, MatchPair, RejectMovingMatches, EstimatePose)),
                     BuildPairModel())
 
 

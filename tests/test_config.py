@@ -34,6 +34,8 @@ def test_wrong_type_is_named():
         config_from_dict({"fundamental": {"ransac": {"max_trials": "many"}}})
     with pytest.raises(ConfigError, match="fundamental.refine"):
         config_from_dict({"fundamental": {"refine": 1}})
+    with pytest.raises(ConfigError, match="pairs.mode=3 must be one of auto, sequential"):
+        config_from_dict({"pairs": {"mode": 3}})
 
 
 def test_out_of_range_value_is_named():
@@ -70,3 +72,25 @@ def test_unreadable_and_invalid_files(tmp_path):
 
 def test_public_exports():
     assert torchsfm.load_config is load_config
+
+
+def test_registries_offer_exactly_the_config_choices():
+    from typing import get_args
+
+    from torchsfm.config import MotionModel, PoseMethod, Sampler, Scoring, TriangulationMethod
+    from torchsfm.geometry.essential import POSE_CANDIDATES
+    from torchsfm.geometry.triangulation import TRIANGULATION_METHODS
+    from torchsfm.moving.segmentation import MODELS
+    from torchsfm.robust.ransac import SCORINGS
+    from torchsfm.robust.samplers import SAMPLERS
+
+    for registry, choices in ((SAMPLERS, Sampler), (SCORINGS, Scoring), (TRIANGULATION_METHODS, TriangulationMethod),
+                              (POSE_CANDIDATES, PoseMethod), (MODELS, MotionModel)):
+        assert set(registry) == set(get_args(choices))
+
+
+@pytest.mark.parametrize("key, value", [("triangulation.method", "linear"), ("matching.strength", "zncc"),
+                                        ("pairs.mode", "random"), ("moving_objects.track_method", "votes")])
+def test_an_unknown_choice_is_named_with_its_choices(key, value):
+    with pytest.raises(ConfigError, match=f"{key}='{value}' is invalid: one of "):
+        with_overrides(Config(), [f"{key}={value}"])

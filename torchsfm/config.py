@@ -2,8 +2,9 @@
 
 Every tunable lives in a frozen dataclass whose defaults are the thesis' values (or, where the
 thesis is silent, ours, marked so). ``configs/default.yaml`` spells out the same defaults; a test
-keeps the two equal. YAML files and ``key=value`` overrides load strictly: an unknown key or a
-value of the wrong type is a :class:`~torchsfm.errors.ConfigError` naming the full key.
+keeps the two equal. YAML files and ``key=value`` overrides load strictly: an unknown key, a
+value of the wrong type or a name outside a setting's choices (a ``Literal`` type below: the one
+list of them) is a :class:`~torchsfm.errors.ConfigError` naming the full key.
 """
 
 from __future__ import annotations
@@ -12,16 +13,54 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, get_type_hints
+from functools import cache
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import yaml
 
 from torchsfm.errors import ConfigError
 
 
+# The choices of the settings that name a method: each is the single list of its names. The
+# registries that map a name to its implementation (``robust.samplers.SAMPLERS``,
+# ``robust.ransac.SCORINGS``, ``geometry.triangulation.TRIANGULATION_METHODS``,
+# ``geometry.essential.POSE_CANDIDATES``, ``moving.segmentation.MODELS``) are checked against them
+# by a test; the other settings branch on their names where they are used.
+Sampler = Literal["bucketed", "uniform"]
+Scoring = Literal["inlier_count", "msac"]
+Damping = Literal["identity", "diagonal"]
+MinimalSolver = Literal["eight_point", "seven_point"]
+TriangulationMethod = Literal["midpoint", "linear_eigen", "linear_ls", "iterative_eigen", "iterative_ls", "polynomial"]
+PoseMethod = Literal["svd", "linear", "quaternion"]
+Strength = Literal["sm", "ncc"]
+Relaxation = Literal["some_winners", "winner_take_all"]
+ResectionSolver = Literal["p3p", "dlt"]
+Loss = Literal["none", "huber", "cauchy"]
+LinearSolver = Literal["auto", "dense", "cg"]
+PairMode = Literal["auto", "sequential", "exhaustive", "similarity"]
+Matcher = Literal["ncc", "sift"]
+PlaneModel = Literal["quadratic", "homography"]
+Selection = Literal["threshold", "rank"]
+TrackMethod = Literal["triplets", "rigid_groups", "both", "segmentation"]
+MotionModel = Literal["fundamental", "affine", "homography"]
+
+
 def _require(condition: bool, key: str, value: Any, rule: str) -> None:
     if not condition:
         raise ConfigError(f"config {key}={value!r} is invalid: {rule}")
+
+
+@cache
+def _choices(cls: type) -> dict[str, tuple[str, ...]]:
+    """The fields of a config dataclass typed as a ``Literal`` of names, with their choices."""
+    return {name: get_args(hint) for name, hint in get_type_hints(cls).items() if get_origin(hint) is Literal}
+
+
+def _require_choices(section: Any) -> None:
+    """Every named-choice field of ``section`` holds one of its choices."""
+    for name, choices in _choices(type(section)).items():
+        value = getattr(section, name)
+        _require(value in choices, name, value, f"one of {', '.join(choices)}")
 
 
 @dataclass(frozen=True)
@@ -42,22 +81,21 @@ class RansacConfig:
     max_trials: int = 10_000
     hypotheses_per_round: int = 512
     initial_hypotheses: int = 32
-    sampler: str = "bucketed"
+    sampler: Sampler = "bucketed"
     grid_size: int = 8
-    scoring: str = "inlier_count"
+    scoring: Scoring = "inlier_count"
     local_refits: int = 3
     preemptive_points: int = 100
     preemptive_keep: float = 0.125
 
     def __post_init__(self) -> None:
+        _require_choices(self)
         _require(self.inlier_threshold > 0, "inlier_threshold", self.inlier_threshold, "must be > 0")
         _require(0 < self.confidence < 1, "confidence", self.confidence, "must lie in (0, 1)")
         _require(self.max_trials >= 1, "max_trials", self.max_trials, "must be >= 1")
         _require(self.hypotheses_per_round >= 1, "hypotheses_per_round", self.hypotheses_per_round, "must be >= 1")
         _require(self.initial_hypotheses >= 1, "initial_hypotheses", self.initial_hypotheses, "must be >= 1")
-        _require(self.sampler in ("bucketed", "uniform"), "sampler", self.sampler, "one of bucketed, uniform")
         _require(self.grid_size >= 1, "grid_size", self.grid_size, "must be >= 1")
-        _require(self.scoring in ("inlier_count", "msac"), "scoring", self.scoring, "one of inlier_count, msac")
         _require(self.local_refits >= 0, "local_refits", self.local_refits, "must be >= 0")
         _require(self.preemptive_points >= 0, "preemptive_points", self.preemptive_points, "must be >= 0")
         _require(0 < self.preemptive_keep <= 1, "preemptive_keep", self.preemptive_keep, "must lie in (0, 1]")
@@ -78,14 +116,14 @@ class LMConfig:
 
     max_iterations: int = 100
     initial_damping: float = 1e-6
-    damping: str = "identity"
+    damping: Damping = "identity"
     gradient_tolerance: float = 1e-10
     step_tolerance: float = 1e-10
     cost_tolerance: float = 1e-10
 
     def __post_init__(self) -> None:
+        _require_choices(self)
         _require(self.max_iterations >= 1, "max_iterations", self.max_iterations, "must be >= 1")
-        _require(self.damping in ("identity", "diagonal"), "damping", self.damping, "one of identity, diagonal")
         for name in ("initial_damping", "gradient_tolerance", "step_tolerance", "cost_tolerance"):
             value = getattr(self, name)
             _require(value > 0 and math.isfinite(value), name, value, "must be a finite number > 0")
@@ -106,11 +144,10 @@ class FundamentalConfig:
     refine: bool = True
     refine_rounds: int = 1
     refine_support_factor: float = 1.5
-    minimal_solver: str = "eight_point"
+    minimal_solver: MinimalSolver = "eight_point"
 
     def __post_init__(self) -> None:
-        _require(self.minimal_solver in ("eight_point", "seven_point"), "minimal_solver", self.minimal_solver,
-                 "one of eight_point, seven_point")
+        _require_choices(self)
         _require(self.refine_rounds >= 1, "refine_rounds", self.refine_rounds, "must be >= 1")
         _require(self.refine_support_factor >= 1, "refine_support_factor", self.refine_support_factor, "must be >= 1")
 
@@ -123,13 +160,12 @@ class TriangulationConfig:
     weights change by less than ``tolerance`` (relative).
     """
 
-    method: str = "polynomial"
+    method: TriangulationMethod = "polynomial"
     max_iterations: int = 10
     tolerance: float = 1e-10
 
     def __post_init__(self) -> None:
-        methods = ("midpoint", "linear_eigen", "linear_ls", "iterative_eigen", "iterative_ls", "polynomial")
-        _require(self.method in methods, "method", self.method, f"one of {', '.join(methods)}")
+        _require_choices(self)
         _require(self.max_iterations >= 1, "max_iterations", self.max_iterations, "must be >= 1")
         _require(self.tolerance > 0, "tolerance", self.tolerance, "must be > 0")
 
@@ -148,7 +184,7 @@ class RelativePoseConfig:
     the inlier threshold (``fundamental.ransac.inlier_threshold``).
     """
 
-    method: str = "svd"
+    method: PoseMethod = "svd"
     refine: bool = True
     num_starts: int = 16
     kept_starts: int = 4
@@ -157,7 +193,7 @@ class RelativePoseConfig:
     refine_support_factor: float = 1.5
 
     def __post_init__(self) -> None:
-        _require(self.method in ("svd", "linear", "quaternion"), "method", self.method, "one of svd, linear, quaternion")
+        _require_choices(self)
         _require(self.num_starts >= 0, "num_starts", self.num_starts, "must be >= 0")
         _require(self.kept_starts >= 1, "kept_starts", self.kept_starts, "must be >= 1")
         _require(self.start_sample_size >= 8, "start_sample_size", self.start_sample_size, "must be >= 8")
@@ -213,22 +249,21 @@ class MatchingConfig:
     patch_half_size: int = 5
     search_radius: float = 100.0
     ncc_threshold: float = 0.8
-    strength: str = "sm"
+    strength: Strength = "sm"
     neighbourhood_radius: float = 80.0
     relative_distance_threshold: float = 0.3
-    relaxation: str = "some_winners"
+    relaxation: Relaxation = "some_winners"
     alpha: float = 0.6
     strength_threshold: float = 0.0
     max_relaxation_iterations: int = 100
 
     def __post_init__(self) -> None:
+        _require_choices(self)
         _require(self.patch_half_size >= 1, "patch_half_size", self.patch_half_size, "must be >= 1")
         _require(self.search_radius > 0, "search_radius", self.search_radius, "must be > 0")
         _require(-1 <= self.ncc_threshold < 1, "ncc_threshold", self.ncc_threshold, "must lie in [-1, 1)")
-        _require(self.strength in ("sm", "ncc"), "strength", self.strength, "one of sm, ncc")
         _require(self.neighbourhood_radius > 0, "neighbourhood_radius", self.neighbourhood_radius, "must be > 0")
         _require(self.relative_distance_threshold > 0, "relative_distance_threshold", self.relative_distance_threshold, "must be > 0")
-        _require(self.relaxation in ("some_winners", "winner_take_all"), "relaxation", self.relaxation, "one of some_winners, winner_take_all")
         _require(0 < self.alpha <= 1, "alpha", self.alpha, "must lie in (0, 1]")
         _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
 
@@ -241,12 +276,12 @@ class ResectionConfig:
     the pairs within ``refine_support_factor`` × the threshold."""
 
     ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0))
-    solver: str = "p3p"
+    solver: ResectionSolver = "p3p"
     refine: bool = True
     refine_support_factor: float = 1.5
 
     def __post_init__(self) -> None:
-        _require(self.solver in ("p3p", "dlt"), "solver", self.solver, "one of p3p, dlt")
+        _require_choices(self)
         _require(self.refine_support_factor >= 1, "refine_support_factor", self.refine_support_factor, "must be >= 1")
 
 
@@ -269,17 +304,16 @@ class BundleAdjustmentConfig:
     ``cg_max_iterations``."""
 
     lm: LMConfig = field(default_factory=_bundle_lm)
-    loss: str = "none"
+    loss: Loss = "none"
     loss_scale: float = 1.0
-    linear_solver: str = "auto"
+    linear_solver: LinearSolver = "auto"
     dense_limit: int = 3000
     cg_tolerance: float = 1e-6
     cg_max_iterations: int = 500
 
     def __post_init__(self) -> None:
-        _require(self.loss in ("none", "huber", "cauchy"), "loss", self.loss, "one of none, huber, cauchy")
+        _require_choices(self)
         _require(self.loss_scale > 0, "loss_scale", self.loss_scale, "must be > 0")
-        _require(self.linear_solver in ("auto", "dense", "cg"), "linear_solver", self.linear_solver, "one of auto, dense, cg")
         _require(self.dense_limit >= 1, "dense_limit", self.dense_limit, "must be >= 1")
         _require(self.cg_tolerance > 0, "cg_tolerance", self.cg_tolerance, "must be > 0")
         _require(self.cg_max_iterations >= 1, "cg_max_iterations", self.cg_max_iterations, "must be >= 1")
@@ -321,7 +355,7 @@ class PairsConfig:
     pair selection, verification and mapper).
     """
 
-    mode: str = "auto"
+    mode: PairMode = "auto"
     window: int = 2
     exhaustive_up_to: int = 8
     neighbours: int = 4
@@ -334,16 +368,14 @@ class PairsConfig:
     guided: bool = True
     warp_patches: bool = True
     epipolar_matching: bool = True
-    matcher: str = "ncc"
+    matcher: Matcher = "ncc"
     sift_features: int = 4000
     sift_ratio: float = 0.8
 
     def __post_init__(self) -> None:
-        _require(self.matcher in ("ncc", "sift"), "matcher", self.matcher, "one of ncc, sift")
+        _require_choices(self)
         _require(self.sift_features >= 8, "sift_features", self.sift_features, "must be >= 8")
         _require(0 < self.sift_ratio <= 1, "sift_ratio", self.sift_ratio, "must lie in (0, 1]")
-        _require(self.mode in ("auto", "sequential", "exhaustive", "similarity"), "mode", self.mode,
-                 "one of auto, sequential, exhaustive, similarity")
         _require(self.window >= 1, "window", self.window, "must be >= 1")
         _require(self.exhaustive_up_to >= 2, "exhaustive_up_to", self.exhaustive_up_to, "must be >= 2")
         _require(self.neighbours >= 0, "neighbours", self.neighbours, "must be >= 0")
@@ -400,16 +432,16 @@ class ReconstructionConfig:
     bundle_every: int = 0
     local_bundle_window: int = 0
     retriangulations: int = 1
-    bundle_loss: str = "cauchy"
+    bundle_loss: Loss = "cauchy"
     refined_intrinsics: str = "f,cx,cy"
 
     def __post_init__(self) -> None:
+        _require_choices(self)
         names = [name for name in self.refined_intrinsics.split(",") if name]
         _require(all(name in ("f", "fx", "fy", "cx", "cy") for name in names) and len(set(names)) == len(names)
                  and not ("f" in names and {"fx", "fy"} & set(names)), "refined_intrinsics", self.refined_intrinsics,
                  "distinct names of f (or fx, fy), cx, cy, comma-separated")
         _require(self.retriangulations >= 0, "retriangulations", self.retriangulations, "must be >= 0")
-        _require(self.bundle_loss in ("none", "huber", "cauchy"), "bundle_loss", self.bundle_loss, "one of none, huber, cauchy")
         _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
         _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")
         _require(0 < self.max_homography_ratio <= 1, "max_homography_ratio", self.max_homography_ratio, "must lie in (0, 1]")
@@ -466,7 +498,7 @@ class MovingObjectsConfig:
     ``min_object_frames`` frames as its own model (:class:`~torchsfm.reconstruction.MovingObject`).
     """
 
-    plane_model: str = "homography"
+    plane_model: PlaneModel = "homography"
     plane_ransac: RansacConfig = field(default_factory=lambda: RansacConfig(inlier_threshold=2.0, max_trials=2000, initial_hypotheses=128, local_refits=1))
     min_plane_share: float = 0.1
     seed_candidates: int = 20
@@ -476,13 +508,13 @@ class MovingObjectsConfig:
     supports: int = 10
     keep_fraction: float = 0.7
     min_votes: int = 6
-    selection: str = "threshold"
+    selection: Selection = "threshold"
     planar_background_ratio: float = 0.55
     planar_background_share: float = 0.4
     ransac: bool = True
     ransac_initial_hypotheses: int = 4
     min_rejection_share: float = 0.25
-    track_method: str = "segmentation"
+    track_method: TrackMethod = "segmentation"
     max_motions: int = 5
     min_group_tracks: int = 8
     track_tolerance: float = 1.0
@@ -495,9 +527,9 @@ class MovingObjectsConfig:
     min_object_frames: int = 3
 
     def __post_init__(self) -> None:
+        _require_choices(self)
         _require(self.min_object_tracks >= 8, "min_object_tracks", self.min_object_tracks, "must be >= 8")
         _require(self.min_object_frames >= 2, "min_object_frames", self.min_object_frames, "must be >= 2")
-        _require(self.plane_model in ("quadratic", "homography"), "plane_model", self.plane_model, "one of quadratic, homography")
         _require(0 < self.min_plane_share <= 1, "min_plane_share", self.min_plane_share, "must lie in (0, 1]")
         _require(self.seed_candidates >= 1, "seed_candidates", self.seed_candidates, "must be >= 1")
         _require(self.rigidity_threshold > 0, "rigidity_threshold", self.rigidity_threshold, "must be > 0")
@@ -506,12 +538,9 @@ class MovingObjectsConfig:
         _require(self.supports >= 1, "supports", self.supports, "must be >= 1")
         _require(0 < self.keep_fraction <= 1, "keep_fraction", self.keep_fraction, "must lie in (0, 1]")
         _require(1 <= self.min_votes <= self.supports, "min_votes", self.min_votes, "must lie in [1, supports]")
-        _require(self.selection in ("threshold", "rank"), "selection", self.selection, "one of threshold, rank")
         _require(self.planar_background_ratio > 0, "planar_background_ratio", self.planar_background_ratio, "must be > 0")
         _require(0 < self.planar_background_share <= 1, "planar_background_share", self.planar_background_share, "must lie in (0, 1]")
         _require(self.ransac_initial_hypotheses >= 1, "ransac_initial_hypotheses", self.ransac_initial_hypotheses, "must be >= 1")
-        _require(self.track_method in ("triplets", "rigid_groups", "both", "segmentation"), "track_method",
-                 self.track_method, "one of triplets, rigid_groups, both, segmentation")
         _require(self.max_motions >= 1, "max_motions", self.max_motions, "must be >= 1")
         _require(self.min_group_tracks >= 6, "min_group_tracks", self.min_group_tracks, "must be >= 6 (a camera needs 6 points)")
         _require(self.track_tolerance > 0, "track_tolerance", self.track_tolerance, "must be > 0")
@@ -587,8 +616,8 @@ class SegmentationConfig:
         _require(self.scene_tolerance > 0, "scene_tolerance", self.scene_tolerance, "must be > 0")
         _require(self.scene_refinements >= 0, "scene_refinements", self.scene_refinements, "must be >= 0")
         _require(0 < self.scene_significance < 1, "scene_significance", self.scene_significance, "must lie in (0, 1)")
-        _require(bool(self.model_kinds) and set(self.model_kinds) <= {"fundamental", "affine", "homography"}, "models",
-                 self.models, "a comma-separated list of fundamental, affine, homography")
+        _require(bool(self.model_kinds) and set(self.model_kinds) <= set(get_args(MotionModel)), "models",
+                 self.models, f"a comma-separated list of {', '.join(get_args(MotionModel))}")
         _require(self.sample_frames >= 2, "sample_frames", self.sample_frames, "must be >= 2")
         _require(0 <= self.local_share <= 1, "local_share", self.local_share, "must lie in [0, 1]")
         _require(self.neighbours >= 8, "neighbours", self.neighbours, "must be >= 8 (a sample is 8 tracks)")
@@ -728,6 +757,10 @@ def _coerce(value: Any, hint: type, key: str) -> Any:
     elif hint is str:
         if isinstance(value, str):
             return value
+    elif get_origin(hint) is Literal:  # a named choice: its section checks the name
+        if isinstance(value, str):
+            return value
+        raise ConfigError(f"config {key}={value!r} must be one of {', '.join(get_args(hint))}")
     raise ConfigError(f"config {key}={value!r} must be of type {hint.__name__}")
 
 

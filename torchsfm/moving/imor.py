@@ -36,8 +36,9 @@ from torch import Tensor
 from torchsfm.config import Config, MovingObjectsConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
-from torchsfm.moving.parallax import PlaneParallax, plane_parallax
+from torchsfm.moving.parallax import PlaneParallax, plane_parallax_batch
 from torchsfm.moving.rigidity import rigidity_residuals
+from torchsfm.robust.ragged import pad_rows
 from torchsfm.validation import check_finite, check_floating, check_shapes
 
 MIN_VECTORS = 12  # the quadratic flow needs 4 points; RANSAC on it and on F needs clearly more
@@ -103,12 +104,32 @@ def epipolar_consistency(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config |
 
     Returns:
         (N,) bool, an inlier of all three F; and the RANSAC samples drawn in total.
+
+    Raises:
+        NotEnoughDataError: RANSAC finds no F for one of the pairs.
     """
-    config = config or Config()
+    mask, trials = _consistency([torch.stack([x0, x1, x2])], config or Config(), generator)[0]
+    return mask, trials
+
+
+def _consistency(triplets: list[Tensor], config: Config, generator: torch.Generator | None) -> list[tuple[Tensor | None, int]]:
+    """:func:`epipolar_consistency` of T triplets (3, N_t, 2) as one call on their 3T pairs; per
+    triplet its mask (None where RANSAC found no F for one of its pairs) and samples drawn. One
+    triplet raises where it has no F, as :func:`~torchsfm.estimators.estimate_fundamental` does."""
     config = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, refine=False))
-    first, second = torch.stack([x1, x1, x0]), torch.stack([x0, x2, x2])
-    found = estimate_fundamental(first, second, config=config, generator=generator)
-    return found.inlier_mask.all(0), int(found.num_trials.sum())
+    first = [frames[i] for frames in triplets for i in (1, 1, 0)]
+    second = [frames[j] for frames in triplets for j in (0, 2, 2)]
+    if len(triplets) == 1:
+        found = estimate_fundamental(torch.stack(first), torch.stack(second), config=config, generator=generator)
+        return [(found.inlier_mask.all(0), int(found.num_trials.sum()))]
+    data, valid = pad_rows([torch.cat(pair, -1) for pair in zip(first, second)])
+    found = estimate_fundamental(data[..., :2], data[..., 2:], valid=valid, config=config, generator=generator)
+    results = []
+    for t, frames in enumerate(triplets):
+        rows = slice(3 * t, 3 * t + 3)
+        mask = found.inlier_mask[rows, : frames.shape[1]].all(0) if bool(found.success[rows].all()) else None
+        results.append((mask, int(found.num_trials[rows].sum())))
+    return results
 
 
 def _seed_and_supports(x1: Tensor, warped: Tensor, parallax: Tensor, config: MovingObjectsConfig) -> tuple[int, Tensor] | str:
@@ -172,21 +193,58 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
         ShapeError, InputError: malformed or mismatched input. NotEnoughDataError: fewer than 12
         vectors, or RANSAC finds no fundamental matrix.
     """
+    return reject_moving_objects_in_triplets([check_frames(x0, x1, x2)], config=config, generator=generator)[0]
+
+
+def reject_moving_objects_in_triplets(triplets: list[Tensor], *, config: Config | None = None,
+                                      generator: torch.Generator | None = None) -> list[MovingObjectRejection | None]:
+    """:func:`reject_moving_objects` of T triplets at once: the plane RANSACs of all of them run
+    as one ragged call, and so do the cascade's F RANSACs (one call per round size); the seed,
+    supports and votes are chosen per triplet.
+
+    Args:
+        triplets: T (3, N_t, 2) float64 pixels, N_t >= 12, frame 1 the reference.
+        config, generator: as for :func:`reject_moving_objects`.
+
+    Returns:
+        Per triplet its :class:`MovingObjectRejection`, or None where RANSAC found no F (a
+        single triplet raises NotEnoughDataError instead).
+    """
     config = config or Config()
     settings = config.moving_objects
-    frames = check_frames(x0, x1, x2)
-    N = frames.shape[1]
-    outcome = _imor(frames, settings, generator)
-    imor, fallback = outcome.background, outcome.fallback
-    ransac_mask, trials = None, 0
-    background = imor
-    if settings.ransac or fallback is not None:
+    if len(triplets) == 1:  # unpadded: the same draws as a triplet on its own
+        reference, others, valid = triplets[0][1][None], triplets[0][[0, 2]][None], None
+    else:
+        data, valid = pad_rows([frames.transpose(0, 1).flatten(1) for frames in triplets])  # (T, N, 6)
+        frames = data.unflatten(-1, (3, 2)).transpose(1, 2)  # (T, 3, N, 2)
+        reference, others = frames[:, 1], frames[:, [0, 2]]
+    decompositions = plane_parallax_batch(reference, others, valid, settings, generator)
+    outcomes = [_imor(frames, decomposition, settings) for frames, decomposition in zip(triplets, decompositions)]
+    cascades: dict[bool, list[int]] = {}  # IMOR's background is nearly clean: RANSAC starts with small rounds
+    for t, outcome in enumerate(outcomes):
+        if settings.ransac or outcome.fallback is not None:
+            cascades.setdefault(outcome.fallback is None, []).append(t)
+    consistency: dict[int, tuple[Tensor | None, int]] = {}
+    for small_rounds, members in cascades.items():
         cascade = config
-        if fallback is None:  # IMOR's background is nearly clean: start RANSAC with small rounds
+        if small_rounds:
             ransac = dataclasses.replace(config.fundamental.ransac, initial_hypotheses=settings.ransac_initial_hypotheses)
             cascade = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, ransac=ransac))
-        consistent, trials = epipolar_consistency(frames[0, imor], frames[1, imor], frames[2, imor], config=cascade, generator=generator)
-        ransac_mask = torch.zeros(N, dtype=torch.bool, device=frames.device)
+        found = _consistency([triplets[t][:, outcomes[t].background] for t in members], cascade, generator)
+        consistency.update(zip(members, found))
+    return [_result(outcome, consistency.get(t)) for t, outcome in enumerate(outcomes)]
+
+
+def _result(outcome: _Outcome, consistency: tuple[Tensor | None, int] | None) -> MovingObjectRejection | None:
+    """The rejection of one triplet from IMOR's outcome and the cascade's F inliers among IMOR's
+    background (None: no cascade), or None where the cascade found no F."""
+    imor = outcome.background
+    ransac_mask, trials, background = None, 0, imor
+    if consistency is not None:
+        consistent, trials = consistency
+        if consistent is None:
+            return None
+        ransac_mask = torch.zeros_like(imor)
         ransac_mask[imor] = consistent
         background = imor & ransac_mask
     decomposition = outcome.decomposition
@@ -194,7 +252,7 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
         background_mask=background, imor_mask=imor, ransac_mask=ransac_mask, votes=outcome.votes, seed_index=outcome.seed,
         supports=outcome.supports, parallax=decomposition.parallax, plane_inliers=decomposition.plane_inliers,
         planar_background=outcome.planar, plane_trials=decomposition.num_trials,
-        ransac_trials=trials, fallback=fallback,
+        ransac_trials=trials, fallback=outcome.fallback,
     )
 
 
@@ -209,10 +267,9 @@ class _Outcome:
     fallback: str | None
 
 
-def _imor(frames: Tensor, settings: MovingObjectsConfig, generator: torch.Generator | None) -> _Outcome:
-    """Alg. 5.4.1 on (3, N, 2) frames."""
+def _imor(frames: Tensor, decomposition: PlaneParallax, settings: MovingObjectsConfig) -> _Outcome:
+    """Alg. 5.4.1 on (3, N, 2) frames, given their plane + parallax decomposition."""
     N = frames.shape[1]
-    decomposition = plane_parallax(frames[1], frames[[0, 2]], settings, generator)
     warped, parallax = decomposition.warped, decomposition.parallax
     plane_share = decomposition.plane_inliers.sum().item() / N
     votes = torch.zeros(N, dtype=torch.long, device=frames.device)

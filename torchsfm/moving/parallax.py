@@ -47,19 +47,38 @@ def plane_parallax(reference: Tensor, others: Tensor, config: MovingObjectsConfi
         config: plane model, its RANSAC settings.
         generator: random source of the RANSACs.
     """
-    data = torch.cat([reference, others.transpose(0, 1).flatten(1)], dim=-1)[None]  # (1, N, 2 + 2J)
+    return plane_parallax_batch(reference[None], others[None], None, config, generator)[0]
+
+
+def plane_parallax_batch(reference: Tensor, others: Tensor, valid: Tensor | None, config: MovingObjectsConfig,
+                         generator: torch.Generator | None = None) -> list[PlaneParallax]:
+    """:func:`plane_parallax` of B problems as one ragged RANSAC call.
+
+    Args:
+        reference: (B, N, 2) points of each problem's reference frame, pixels, float64.
+        others: (B, J, N, 2) the same points in J other frames.
+        valid: (B, N) bool, the real rows of each problem (padding last); None: all.
+        config, generator: as for :func:`plane_parallax`.
+
+    Returns:
+        Per problem its decomposition, on its real rows only.
+    """
+    B, J, N, _ = others.shape
+    data = torch.cat([reference, others.transpose(1, 2).flatten(2)], dim=-1)  # (B, N, 2 + 2J)
     if config.plane_model == "quadratic":
-        model = PlanarFlowModel(data)
-        found = ransac(model, data, config.plane_ransac, generator=generator)
-        flow = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 8) least squares on the inliers
+        model = PlanarFlowModel(data, valid)
+        found = ransac(model, data, config.plane_ransac, valid=valid, generator=generator)
+        flow = model.fit_weighted(data, found.inlier_mask.to(data.dtype))  # (B, J, 8) least squares on the inliers
         x, _ = model.normalize(data)
-        warped = others - planar_flow(flow[None], x)[0] / model.T[0, 0, 0]
+        warped = others - planar_flow(flow, x) / model.T[:, 0, 0, None, None, None]
     else:
-        model = JointModel(HomographyModel, data)
-        found = ransac(model, data, config.plane_ransac, generator=generator)
-        H = model.fit_weighted(data, found.inlier_mask.to(data.dtype))[0]  # (J, 3, 3)
+        model = JointModel(HomographyModel, data, valid)
+        found = ransac(model, data, config.plane_ransac, valid=valid, generator=generator)
+        H = model.fit_weighted(data, found.inlier_mask.to(data.dtype))  # (B, J, 3, 3)
         inverse, info = torch.linalg.inv_ex(H)  # a singular plane (degenerate points) warps to infinity: IMOR falls back
-        inverse = torch.where((info == 0)[:, None, None], inverse, torch.full_like(inverse, float("inf")))
+        inverse = torch.where((info == 0)[..., None, None], inverse, torch.full_like(inverse, float("inf")))
         warped = from_homogeneous(to_homogeneous(others) @ inverse.transpose(-1, -2))
-    return PlaneParallax(warped=warped, parallax=warped - reference, plane_inliers=found.inlier_mask[0],
-                         num_trials=int(found.num_trials[0]))
+    parallax = warped - reference[:, None]
+    counts = [N] * B if valid is None else valid.sum(-1).tolist()
+    return [PlaneParallax(warped=warped[b, :, :n], parallax=parallax[b, :, :n], plane_inliers=found.inlier_mask[b, :n],
+                          num_trials=int(found.num_trials[b])) for b, n in enumerate(counts)]

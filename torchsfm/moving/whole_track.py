@@ -31,7 +31,7 @@ from torch import Tensor
 
 from torchsfm.config import Config
 from torchsfm.errors import NotEnoughDataError, ShapeError, TorchSfmError
-from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects
+from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects_in_triplets
 from torchsfm.moving.segmentation import MotionSegmentation, grid_coverage, segment_motions
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group
 from torchsfm.moving.track_input import check_tracks
@@ -135,24 +135,27 @@ def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = Non
 def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, int, int]], config: Config,
                    generator: torch.Generator | None
                    ) -> tuple[Tensor, list[tuple[int, int, int]], list[MovingObjectRejection]]:
-    """IMOR + RANSAC on every triplet's fully seen tracks: (N,) rejection share (NaN: untested),
-    the triplets tested and their results."""
+    """IMOR + RANSAC on every triplet's fully seen tracks, all triplets in one batched call
+    (:func:`~torchsfm.moving.imor.reject_moving_objects_in_triplets`): (N,) rejection share
+    (NaN: untested), the triplets tested and their results."""
     N = tracks.shape[1]
+    seen = torch.stack([visible[list(triplet)].all(0) for triplet in triplets]) if triplets else visible[:0]  # (T, N)
+    usable = [t for t in range(len(triplets)) if int(seen[t].sum()) >= MIN_VECTORS]
+    try:
+        found = reject_moving_objects_in_triplets([tracks[list(triplets[t])][:, seen[t]] for t in usable], config=config,
+                                                  generator=generator) if usable else []
+    except NotEnoughDataError:  # the one usable triplet has no F (several report None instead): no vote
+        found = [None]
     rejected = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     tested = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     tested_triplets, results = [], []
-    for triplet in triplets:
-        seen = visible[list(triplet)].all(0)
-        if int(seen.sum()) < MIN_VECTORS:
+    for t, result in zip(usable, found):
+        if result is None:  # RANSAC found no F on this triplet: it casts no vote
             continue
-        try:
-            result = reject_moving_objects(*tracks[list(triplet)][:, seen], config=config, generator=generator)
-        except NotEnoughDataError:  # RANSAC found no F on this triplet: it casts no vote
-            continue
-        tested_triplets.append(tuple(triplet))
+        tested_triplets.append(tuple(triplets[t]))
         results.append(result)
-        tested[seen] += 1
-        rejected[seen] += (~result.background_mask).double()
+        tested[seen[t]] += 1
+        rejected[seen[t]] += (~result.background_mask).double()
     return torch.where(tested > 0, rejected / tested.clamp_min(1), float("nan")), tested_triplets, results
 
 

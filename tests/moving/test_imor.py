@@ -8,7 +8,7 @@ from torchsfm.config import Config, with_overrides
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.io.datasets import read_hopkins155, read_strecha
 from torchsfm.images import read_image
-from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects
+from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects, reject_moving_objects_in_triplets
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import inserted_object_triplet, rejection_figures, synthetic_moving_scene
 
@@ -39,6 +39,23 @@ def test_synthetic_scenes_cascade_meets_the_targets():
     assert pooled["undetected"] <= 0.01 * moving_total
     assert pooled["wrong_rejections"] <= 0.10 * static_total
     assert alone_trials >= 20 * cascade_trials
+
+
+def test_triplets_in_one_batch_meet_the_single_triplet_targets():
+    """Five scenes of different sizes (1-3 objects, 20% outliers) and one of random points (no
+    plane: RANSAC alone) as one batched call: each result covers its own vectors, the scenes meet
+    the targets of the test above, and the random one falls back as it does on its own."""
+    scenes = [synthetic_moving_scene(seed, num_objects=1 + seed % 3, outlier_fraction=0.2) for seed in range(5)]
+    triplets = [scene.tracks[:, : 300 - 20 * k] for k, scene in enumerate(scenes)]
+    triplets.append(torch.rand(3, 200, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 600)
+    results = reject_moving_objects_in_triplets(triplets, generator=torch.Generator().manual_seed(0))
+    assert [r.background_mask.shape[0] for r in results] == [t.shape[1] for t in triplets]
+    figures = [rejection_figures(r.background_mask, scene.labels[: t.shape[1]]) for r, scene, t in zip(results, scenes, triplets)]
+    pooled = _pooled(figures)
+    moving = sum(int((scene.labels[: t.shape[1]] != 0).sum()) for scene, t in zip(scenes, triplets))
+    static = sum(int((scene.labels[: t.shape[1]] == 0).sum()) for scene, t in zip(scenes, triplets))
+    assert pooled["undetected"] <= 0.01 * moving and pooled["wrong_rejections"] <= 0.10 * static
+    assert all(r.fallback is None for r in results[:5]) and "no dominant plane" in results[5].fallback
 
 
 def test_imor_alone_and_its_diagnostics():

@@ -65,6 +65,15 @@ def _batched(tensor: torch.Tensor, batch: int) -> torch.Tensor:
     return tensor if batch == 0 else tensor.expand(batch, *tensor.shape).clone()
 
 
+def _ragged(seed: int, batch: int, n: int, *tensors: torch.Tensor) -> tuple[torch.Tensor | None, ...]:
+    """A random (batch, n) validity mask (None for unbatched input) and the batched tensors with
+    NaN in their padding."""
+    if batch == 0:
+        return None, *tensors
+    valid = torch.rand(batch, n, generator=torch.Generator().manual_seed(seed)) >= 0.3
+    return valid, *(torch.where(valid[..., None], tensor, float("nan")) for tensor in tensors)
+
+
 @CASES
 @given(**common)
 def test_estimate_fundamental(seed, n, degeneracy, dtype, batch):
@@ -72,6 +81,24 @@ def test_estimate_fundamental(seed, n, degeneracy, dtype, batch):
     result = _call(torchsfm.estimate_fundamental, _batched(x1, batch), _batched(x2, batch), generator=torch.Generator().manual_seed(seed))
     if result is not None:
         assert _finite(result.F, result.sampson_rms)
+
+
+@CASES
+@given(**common)
+def test_ragged_estimators(seed, n, degeneracy, dtype, batch):
+    """The three estimators on a ragged batch (random validity, NaN padding): finite results,
+    no inlier in the padding, or a TorchSfmError."""
+    X, x1, x2 = _scene(seed, n, degeneracy, dtype)
+    valid, X, x1, x2 = _ragged(seed, max(batch, 1), n, _batched(X, max(batch, 1)), _batched(x1, max(batch, 1)),
+                               _batched(x2, max(batch, 1)))
+    g = lambda: torch.Generator().manual_seed(seed)  # noqa: E731
+    Kd = K.to(dtype)
+    for result in (_call(torchsfm.estimate_fundamental, x1, x2, valid=valid, generator=g()),
+                   _call(torchsfm.estimate_relative_pose, x1, x2, Kd, Kd, valid=valid, generator=g()),
+                   _call(torchsfm.estimate_absolute_pose, X, x1, Kd, valid=valid, generator=g())):
+        if result is not None:
+            assert not bool((result.inlier_mask & ~valid).any())
+            assert _finite(*(getattr(result, name) for name in ("F", "R", "t") if hasattr(result, name)))
 
 
 @CASES
@@ -163,3 +190,118 @@ def test_bundle_adjust(seed, cameras, points, corruption):
         assert result.status in ("converged", "stalled", "failed", "max_iterations")
         if result.status != "failed":
             assert math.isfinite(result.final_cost) and _finite(result.problem.points, result.problem.translations)
+
+
+def _tracks(seed: int, frames: int, n: int, degeneracy: str, gaps: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, N, 2) tracks of a camera sliding past the scene, with the degeneracy and gaps."""
+    X, _, _ = _scene(seed, n, degeneracy, torch.float64)
+    views = []
+    for f in range(frames):
+        camera = X - torch.tensor([0.3 * f, 0.0, 0.0], dtype=torch.float64)
+        pixels = camera @ K.T
+        views.append(pixels[:, :2] / pixels[:, 2:])
+    tracks = torch.stack(views)
+    if degeneracy in ("nan", "inf"):
+        tracks[0, n // 3, 0] = float(degeneracy)
+    visible = torch.rand(frames, n, generator=torch.Generator().manual_seed(seed)) >= gaps
+    return tracks, visible
+
+
+tracks_cases = dict(seed=st.integers(0, 10_000), frames=st.integers(1, 5), n=st.integers(1, 40),
+                    degeneracy=st.sampled_from(DEGENERACIES), gaps=st.floats(0.0, 0.6))
+
+
+@CASES
+@given(**tracks_cases)
+def test_segment_motions(seed, frames, n, degeneracy, gaps):
+    tracks, visible = _tracks(seed, frames, n, degeneracy, gaps)
+    result = _call(torchsfm.segment_motions, tracks, visible, generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert result.labels.shape == (n,) and int(result.labels.max()) < result.num_motions
+
+
+@CASES
+@given(**tracks_cases)
+def test_reconstruct_tracks(seed, frames, n, degeneracy, gaps):
+    tracks, visible = _tracks(seed, frames, n, degeneracy, gaps)
+    model = _call(torchsfm.reconstruct_tracks, tracks, K, visible, generator=torch.Generator().manual_seed(seed))
+    if model is not None:
+        assert model.num_views >= 2 and _finite(model.cameras.R, model.cameras.t, model.points3d)
+
+
+@CASES
+@given(**tracks_cases)
+def test_reconstruct_motions(seed, frames, n, degeneracy, gaps):
+    tracks, visible = _tracks(seed, frames, n, degeneracy, gaps)
+    result = _call(torchsfm.reconstruct_motions, tracks, K, visible, generator=torch.Generator().manual_seed(seed))
+    if result is not None:
+        assert all(_finite(model.cameras.R, model.cameras.t, model.points3d) for model in result.models.values())
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), views=st.integers(0, 5), pattern=st.tuples(st.integers(1, 6), st.integers(1, 5)),
+       corruption=st.sampled_from(["none", "nan", "identical_views", "collinear", "fronto_parallel_only"]))
+def test_calibrate_camera(seed, views, pattern, corruption):
+    g = torch.Generator().manual_seed(seed)
+    board = torchsfm.board_points(pattern, 25.0)
+    plane = torch.cat([board, torch.zeros(board.shape[0], 1, dtype=torch.float64)], -1)
+    if corruption == "collinear":
+        plane[:, 1] = 0.0
+    detected = []
+    for v in range(views):
+        angle = 0.0 if corruption == "fronto_parallel_only" else 0.3 * (v + 1) * (1 + 0.1 * float(torch.rand(1, generator=g)))
+        R = torchsfm.geometry.rotation.axis_angle_to_rotation(torch.tensor([angle, 0.5 * angle, 0.0], dtype=torch.float64))
+        camera = plane @ R.T + torch.tensor([-60.0, -50.0, 400.0], dtype=torch.float64)
+        detected.append((camera @ K.T)[:, :2] / (camera @ K.T)[:, 2:])
+    image_points = torch.stack(detected) if detected else torch.zeros(0, board.shape[0], 2, dtype=torch.float64)
+    if corruption == "identical_views" and views:
+        image_points[:] = image_points[0]
+    if corruption == "nan" and views:
+        image_points[0, 0, 0] = float("nan")
+    result = _call(torchsfm.calibrate_camera, board, image_points)
+    if result is not None:
+        assert _finite(result.K, result.distortion, result.R, result.t) and math.isfinite(result.rms)
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), height=st.integers(1, 48), width=st.integers(1, 48), channels=st.sampled_from([1, 3]),
+       content=st.sampled_from(["noise", "flat", "stripes", "nan"]), pattern=st.tuples(st.integers(1, 6), st.integers(1, 5)))
+def test_detect_chessboard(seed, height, width, channels, content, pattern):
+    image = torch.rand(channels, height, width, generator=torch.Generator().manual_seed(seed))
+    if content == "flat":
+        image[:] = 0.5
+    elif content == "stripes":
+        image = (torch.arange(width) // 4 % 2).float().expand(channels, height, width).clone()
+    elif content == "nan":
+        image[..., 0, 0] = float("nan")
+    result = _call(torchsfm.detect_chessboard, image, pattern)
+    if result is not None:
+        assert (result.corners is None) != (result.reason is None)
+        if result.corners is not None:
+            assert result.corners.shape == (pattern[0] * pattern[1], 2) and _finite(result.corners)
+
+
+@CASES
+@given(seed=st.integers(0, 10_000), views=st.integers(0, 4), height=st.integers(1, 40), width=st.integers(1, 40),
+       content=st.sampled_from(["noise", "flat", "shifted", "nan"]))
+def test_reconstruct(seed, views, height, width, content):
+    g = torch.Generator().manual_seed(seed)
+    base = torch.rand(1, height + 8, width + 8, generator=g)
+    images = [base[:, v:v + height, v:v + width].clone() if content == "shifted" else torch.rand(1, height, width, generator=g)
+              for v in range(views)]
+    for image in images:
+        if content == "flat":
+            image[:] = 0.5
+        elif content == "nan":
+            image[..., 0, 0] = float("nan")
+    model = _call(torchsfm.reconstruct, images, K, generator=torch.Generator().manual_seed(seed))
+    if model is not None:
+        assert model.num_views >= 2 and _finite(model.cameras.R, model.cameras.t, model.points3d)
+
+
+@CASES
+@given(key=st.sampled_from(["pairs.mode", "fundamental.ransac.confidence", "harris.max_corners", "nonsense", "pairs", "a.b.c", ""]),
+       value=st.one_of(st.text(max_size=8), st.integers(-5, 5), st.floats(allow_nan=True), st.booleans(), st.none()))
+def test_with_overrides(key, value):
+    config = _call(torchsfm.with_overrides, torchsfm.Config(), [f"{key}={value}"])
+    assert config is None or isinstance(config, torchsfm.Config)

@@ -803,5 +803,8 @@ def with_overrides(config: Config, assignments: list[str]) -> Config:
             node = node[part]
         if leaf not in node:
             raise ConfigError(f"unknown config key {key.strip()!r} in override {assignment!r}")
-        node[leaf] = yaml.safe_load(raw)
+        try:
+            node[leaf] = yaml.safe_load(raw)
+        except yaml.YAMLError as error:
+            raise ConfigError(f"override {assignment!r}: the value is not a YAML scalar ({error})") from None
     return config_from_dict(values)

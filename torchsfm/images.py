@@ -10,7 +10,7 @@ from kornia.color import rgb_to_grayscale
 from torch import Tensor
 from torch.nn import functional
 
-from torchsfm.errors import InputError
+from torchsfm.errors import InputError, ShapeError
 
 
 def read_image(path: str | Path) -> Tensor:
@@ -30,6 +30,16 @@ def read_image(path: str | Path) -> Tensor:
     if image.shape[0] not in (1, 3) or image.dtype != torch.uint8:
         raise InputError(f"cannot read image {path}: expected an 8-bit grey or colour image, got {tuple(image.shape)} {image.dtype}")
     return image.contiguous().expand(3, -1, -1)  # a grey file's three channels share one plane: no copy
+
+
+def check_image(image: Tensor, name: str = "image") -> None:
+    """A (3, H, W) colour or (1, H, W) grey tensor, uint8 or float without NaN or inf; else a
+    ShapeError or InputError naming ``name``."""
+    if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] not in (1, 3):
+        shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
+        raise ShapeError(f"{name} must be a (3, H, W) colour or (1, H, W) grey tensor, got {shape}")
+    if image.is_floating_point() and not bool(torch.isfinite(image).all()):
+        raise InputError(f"{name} holds NaN or infinite intensities")
 
 
 def to_unit_float(image: Tensor) -> Tensor:

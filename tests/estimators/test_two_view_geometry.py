@@ -165,3 +165,28 @@ def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
     assert not estimate.inlier_mask[2].any() and torch.isfinite(estimate.F).all()
     with pytest.raises(ShapeError, match="valid"):
         torchsfm.estimate_fundamental(x1, x2, valid=valid[:, :10])
+
+
+def test_relative_pose_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
+    """As for F: two noise-free problems of 300 and 120 correspondences with outliers and one of
+    5 rows, NaN padding, one call: exact poses and inliers for the two, failure reported for
+    the third."""
+    scenes = [synthetic_two_view(300, outlier_ratio=0.3, seed=1), synthetic_two_view(120, outlier_ratio=0.5, seed=3)]
+    x1 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
+    x2 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
+    valid = torch.zeros(3, 300, dtype=torch.bool)
+    for b, scene in enumerate(scenes):
+        n = scene.x1.shape[0]
+        x1[b, :n], x2[b, :n], valid[b, :n] = scene.x1, scene.x2, True
+    x1[2, :5], x2[2, :5], valid[2, :5] = scenes[0].x1[:5], scenes[0].x2[:5], True
+    K1 = torch.stack([scenes[0].K1, scenes[1].K1, scenes[0].K1])
+    K2 = torch.stack([scenes[0].K2, scenes[1].K2, scenes[0].K2])
+    pose = torchsfm.estimate_relative_pose(x1, x2, K1, K2, valid=valid, generator=_generator())
+    assert pose.success.tolist() == [True, True, False]
+    for b, scene in enumerate(scenes):
+        n = scene.x1.shape[0]
+        assert rotation_error_deg(pose.R[b], scene.R) < 1e-6 and translation_direction_error_deg(pose.t[b], scene.t) < 1e-6
+        assert torch.equal(pose.inlier_mask[b, :n], scene.is_inlier) and not pose.inlier_mask[b, n:].any()
+        assert pose.points3d[b].shape == (int(scene.is_inlier.sum()), 3)
+    assert not pose.inlier_mask[2].any() and pose.points3d[2].shape == (0, 3)
+    assert torch.isfinite(pose.R).all() and torch.isfinite(pose.t).all() and torch.isfinite(pose.F).all()

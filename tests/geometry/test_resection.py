@@ -104,3 +104,27 @@ def test_estimate_absolute_pose_with_half_the_points_identical():
     x = X @ K.T
     pose = torchsfm.estimate_absolute_pose(X, x[:, :2] / x[:, 2:], K, generator=g)
     torch.testing.assert_close(pose.R, torch.eye(3, dtype=torch.float64), atol=1e-8, rtol=0)
+
+
+def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
+    """Problems of 200 and 80 pairs (50 % / 30 % outliers) and one of 4 pairs, padded with NaN to
+    200 in one call: the first two recover the pose exactly with the planted outliers found, the
+    third reports failure instead of raising."""
+    scenes = [_scene(200, outliers=0.5, seed=3), _scene(80, outliers=0.3, seed=5)]
+    X = torch.full((3, 200, 3), float("nan"), **DOUBLE)
+    x = torch.full((3, 200, 2), float("nan"), **DOUBLE)
+    valid = torch.zeros(3, 200, dtype=torch.bool)
+    for b, (Xb, xb, _, _, _) in enumerate(scenes):
+        n = Xb.shape[0]
+        X[b, :n], x[b, :n], valid[b, :n] = Xb, xb, True
+    X[2, :4], x[2, :4], valid[2, :4] = scenes[1][0][-4:], scenes[1][1][-4:], True
+    pose = torchsfm.estimate_absolute_pose(X, x, K, valid=valid, generator=torch.Generator().manual_seed(0))
+    assert pose.success.tolist() == [True, True, False]
+    for b, (Xb, _, R, t, truth) in enumerate(scenes):
+        n = Xb.shape[0]
+        assert torch.equal(pose.inlier_mask[b, :n], truth) and not pose.inlier_mask[b, n:].any()
+        assert_close(pose.R[b], R, rtol=0, atol=1e-8)
+        assert_close(pose.t[b], t, rtol=0, atol=1e-8)
+    assert not pose.inlier_mask[2].any() and torch.isfinite(pose.R).all() and torch.isfinite(pose.t).all()
+    with pytest.raises(ShapeError, match="valid"):
+        torchsfm.estimate_absolute_pose(X, x, K, valid=valid[:, :10])

@@ -28,7 +28,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchsfm.config import ChessboardConfig
-from torchsfm.images import to_grey
+from torchsfm.errors import InputError
+from torchsfm.images import check_image, to_grey
 
 NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
@@ -237,14 +238,20 @@ def detect_chessboard(image: Tensor, pattern: tuple[int, int], config: Chessboar
         (first corner at the top left of the board as seen, rows along +x), or ``reason``.
     """
     config = config or ChessboardConfig()
+    check_image(image)
+    cols, rows = pattern
+    if cols < 2 or rows < 2:
+        raise InputError(f"a chessboard pattern needs at least 2x2 inner corners, got {cols}x{rows}")
     grey = to_grey(image)
     H, W = grey.shape[-2:]
+    smallest = 2 * math.ceil(3 * config.sigma) + 2  # the saddle filter's support, plus one pixel
+    if min(H, W) < smallest:
+        return ChessboardDetection(None, f"the image ({H}x{W} px) is too small to hold a chessboard (needs {smallest} px a side)", 0)
     scale = min(1.0, config.detection_size / max(H, W))
     small = F.interpolate(grey[None], scale_factor=scale, mode="area")[0] if scale < 1 else grey
     points, strength = saddle_candidates(small, config)
     count = points.shape[0]
-    cols, rows = pattern
-    if count < cols * rows - config.max_missing:
+    if count < max(4, cols * rows - config.max_missing):
         return ChessboardDetection(None, f"only {count} chessboard-like corners (X-junctions) found, {cols * rows} needed", count)
     reason = "no corner lattice found"
     centre = points.mean(0)

@@ -95,13 +95,16 @@ def intrinsics_from_homographies(H: Tensor, T: Tensor | None = None) -> Tensor:
             "the board views do not determine K: they are (nearly) parallel to each other; tilt the board "
             f"differently in each photo (singular values of Zhang's system: {sigma[-2]:.2e}, {sigma[-1]:.2e})")
     B11, B12, B22, B13, B23, B33 = Vh[-1].tolist()
-    denominator = B11 * B22 - B12**2
     if B11 < 0:  # b is defined up to sign: B must be positive definite
         B11, B12, B22, B13, B23, B33 = -B11, -B12, -B22, -B13, -B23, -B33
+    denominator = B11 * B22 - B12**2
+    no_real_K = DegenerateConfigurationError("Zhang's closed form gives no real K: the views are degenerate or too noisy")
+    if B11 <= 0 or denominator <= 0:
+        raise no_real_K
     v0 = (B12 * B13 - B11 * B23) / denominator
     lam = B33 - (B13**2 + v0 * (B12 * B13 - B11 * B23)) / B11
-    if denominator <= 0 or lam / B11 <= 0:
-        raise DegenerateConfigurationError("Zhang's closed form gives no real K: the views are degenerate or too noisy")
+    if lam / B11 <= 0:
+        raise no_real_K
     alpha = math.sqrt(lam / B11)
     beta = math.sqrt(lam * B11 / denominator)
     gamma = -B12 * alpha**2 * beta / lam
@@ -161,8 +164,13 @@ def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationCon
     if sizes["N"] < 4:
         raise NotEnoughDataError(f"a view needs at least 4 board points, got {sizes['N']}")
     board, image_points = board.double(), image_points.double()
+    spread = torch.linalg.svdvals(board - board.mean(0))  # (2,): the board's extent along its two axes
+    if float(spread[1]) <= 1e-9 * float(spread[0]):
+        raise DegenerateConfigurationError("the board points are collinear (one row or column): a plane's homography needs a 2-D target")
     V = sizes["V"]
     H = view_homographies(board, image_points, config.lm)
+    if not bool(torch.isfinite(H).all()):
+        raise DegenerateConfigurationError("a view's board points do not determine its homography (collinear or coincident in the image)")
     K = intrinsics_from_homographies(H, hartley_normalize(image_points.reshape(-1, 2))[1])
     if config.zero_skew:
         K[0, 1] = 0.0

@@ -46,6 +46,7 @@ def calibrated_pose(
     candidates: Tensor,
     config: Config,
     generator: torch.Generator | None,
+    valid: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Best calibrated pose over a batch of starts.
 
@@ -55,12 +56,14 @@ def calibrated_pose(
         candidates: (B, N) bool, F's inliers (starts are drawn from them).
         config: ``relative_pose``, ``fundamental.ransac`` (threshold, grid) and ``lm``.
         generator: random source of the extra starts.
+        valid: optional (B, N) bool, the real rows of a padded batch (default: all).
 
     Returns:
         R (B, 3, 3), unit t (B, 3) and the inlier mask (B, N) under the calibrated model.
     """
     B, N, _ = x1.shape
     settings = config.relative_pose
+    valid = torch.ones(B, N, dtype=torch.bool, device=x1.device) if valid is None else valid
     n1, n2 = pixels_to_normalized(x1, K1), pixels_to_normalized(x2, K2)
     starts = E[:, None]
     sample_size = min(settings.start_sample_size, int(candidates.sum(-1).min()))
@@ -74,15 +77,15 @@ def calibrated_pose(
     schedule = threshold_schedule(threshold, settings.start_threshold_factor, settings.refine_support_factor)
     R, t = _decompose_starts(starts, n1, n2, candidates, settings.method)  # (B, S, 3, 3), (B, S, 3)
     for stage, stage_threshold in enumerate(schedule if settings.refine else []):
-        R, t = _refine_starts(R, t, x1, x2, K1, K2, stage_threshold, config)
+        R, t = _refine_starts(R, t, x1, x2, K1, K2, valid, stage_threshold, config)
         if stage == 0 and R.shape[1] > settings.kept_starts:  # prune to the most promising starts
-            keep = _truncated_cost(R, t, x1, x2, K1, K2, threshold).topk(settings.kept_starts, dim=1, largest=False).indices
+            keep = _truncated_cost(R, t, x1, x2, K1, K2, valid, threshold).topk(settings.kept_starts, dim=1, largest=False).indices
             R = torch.gather(R, 1, keep[..., None, None].expand(B, -1, 3, 3))
             t = torch.gather(t, 1, keep[..., None].expand(B, -1, 3))
-    best = _truncated_cost(R, t, x1, x2, K1, K2, threshold).argmin(dim=1)
+    best = _truncated_cost(R, t, x1, x2, K1, K2, valid, threshold).argmin(dim=1)
     batch = torch.arange(B, device=best.device)
     R, t = R[batch, best], t[batch, best]
-    inliers = sampson_error(fundamental_from_pose(K1, K2, R, t), x1, x2) < threshold**2
+    inliers = (sampson_error(fundamental_from_pose(K1, K2, R, t), x1, x2) < threshold**2) & valid
     # Epipolar errors cannot tell (R, t) from (R, -t) or the twisted pair: settle it by cheirality.
     R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_pose(R, t)), n1, n2, inliers.to(x1.dtype))
     return R, t, inliers
@@ -101,18 +104,19 @@ def _decompose_starts(E: Tensor, n1: Tensor, n2: Tensor, candidates: Tensor, met
     return R.reshape(B, S, 3, 3), t.reshape(B, S, 3)
 
 
-def _refine_starts(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, threshold: float,
+def _refine_starts(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, valid: Tensor, threshold: float,
                    config: Config) -> tuple[Tensor, Tensor]:
-    """One stage: each start's support (Sampson < threshold under its own pose), then LM on it."""
+    """One stage: each start's support (valid rows with Sampson < threshold under its own
+    pose), then LM on it."""
     B, S = R.shape[:2]
-    x1s, x2s, K1s, K2s = (_expand(x, S) for x in (x1, x2, K1, K2))
+    x1s, x2s, K1s, K2s, valid_s = (_expand(x, S) for x in (x1, x2, K1, K2, valid))
     R, t = R.reshape(B * S, 3, 3), t.reshape(B * S, 3)
-    support = sampson_error(fundamental_from_pose(K1s, K2s, R, t), x1s, x2s) < threshold**2
+    support = (sampson_error(fundamental_from_pose(K1s, K2s, R, t), x1s, x2s) < threshold**2) & valid_s
     R, t, _ = refine_relative_pose(R, t, x1s, x2s, K1s, K2s, support.to(x1.dtype), config.lm)
     return R.reshape(B, S, 3, 3), t.reshape(B, S, 3)
 
 
-def _truncated_cost(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, threshold: float) -> Tensor:
-    """MSAC cost Σ min(Sampson, threshold²) of every start over all points: (B, S)."""
+def _truncated_cost(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, valid: Tensor, threshold: float) -> Tensor:
+    """MSAC cost Σ min(Sampson, threshold²) of every start over the valid points: (B, S)."""
     F = fundamental_from_pose(K1[:, None], K2[:, None], R, t)  # (B, S, 3, 3)
-    return sampson_error(F, x1[:, None], x2[:, None]).clamp_max(threshold**2).sum(-1)
+    return (sampson_error(F, x1[:, None], x2[:, None]).clamp_max(threshold**2) * valid[:, None]).sum(-1)

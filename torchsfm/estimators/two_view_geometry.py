@@ -58,6 +58,8 @@ class RelativePose:
             and a tuple of B such tensors for a batch.
         F: (B, 3, 3) the fundamental matrix of the final pose, K2⁻ᵀ [t]x R K1⁻¹ (unit norm).
         num_trials: (B,) RANSAC minimal samples drawn.
+        success: (B,) bool, a pose was found (always True without ``valid``: a failure raises);
+            a problem without one has R = I, t = 0, F = 0 and no inliers.
     """
 
     R: Tensor
@@ -66,6 +68,7 @@ class RelativePose:
     points3d: Tensor | tuple[Tensor, ...]
     F: Tensor
     num_trials: Tensor
+    success: Tensor
 
 
 def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor, bool, Tensor]:
@@ -167,6 +170,7 @@ def estimate_relative_pose(
     K1: Tensor,
     K2: Tensor,
     *,
+    valid: Tensor | None = None,
     config: Config | None = None,
     generator: torch.Generator | None = None,
 ) -> RelativePose:
@@ -178,6 +182,9 @@ def estimate_relative_pose(
     Args:
         x1, x2: pixel correspondences (N, 2) or (B, N, 2).
         K1, K2: intrinsics (3, 3) or (B, 3, 3).
+        valid: optional (B, N) bool: a ragged batch padded to one N (False rows are ignored,
+            whatever they hold). With it, a problem without a pose is reported in ``success``
+            instead of raising, so one bad problem does not stop the others.
         config: uses ``fundamental``, ``relative_pose``, ``triangulation`` and ``lm``.
         generator: RANSAC's random source.
 
@@ -186,7 +193,7 @@ def estimate_relative_pose(
     """
     config = config or Config()
     dtype = x1.dtype
-    x1b, x2b, unbatched, mask = _check_correspondences(x1, x2)
+    x1b, x2b, unbatched, mask = _check_correspondences(x1, x2, valid)
     B = x1b.shape[0]
     check_floating(K1=K1, K2=K2)
     check_intrinsics(K1=K1, K2=K2)
@@ -195,18 +202,32 @@ def estimate_relative_pose(
         raise ShapeError(f"K1 and K2 must be (3, 3) or ({B}, 3, 3), got {tuple(K1.shape)} and {tuple(K2.shape)}")
 
     F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
-    _raise_on_failure(success, unbatched)
-    R, t, inliers = calibrated_pose(essential_from_fundamental(F, K1b, K2b), x1b, x2b, K1b, K2b, candidates, config, generator)
-    F = fundamental_from_pose(K1b, K2b, R, t)
-
-    P1 = projection_matrix(K1b, torch.eye(3, dtype=torch.float64, device=K1b.device).expand(B, 3, 3), torch.zeros(B, 3, dtype=torch.float64, device=K1b.device))
-    P2 = projection_matrix(K2b, R, t)
-    X = triangulate_points(x1b, x2b, P1, P2, config.triangulation)  # (B, N, 3)
-    depth2 = (X @ R.transpose(-1, -2) + t[:, None, :])[..., 2]
-    inliers = inliers & (X[..., 2] > 0) & (depth2 > 0) & torch.isfinite(X).all(-1)
-    _raise_on_failure(inliers.sum(-1) >= 5, unbatched)
+    if valid is None:
+        _raise_on_failure(success, unbatched)
+    R = torch.eye(3, dtype=torch.float64, device=x1b.device).repeat(B, 1, 1)
+    t = torch.zeros(B, 3, dtype=torch.float64, device=x1b.device)
+    inliers = torch.zeros_like(mask)
+    X = torch.zeros(B, x1b.shape[1], 3, dtype=torch.float64, device=x1b.device)
+    found = torch.nonzero(success).flatten()  # the problems with an F: a pose for each
+    if found.numel():
+        x1f, x2f, K1f, K2f = x1b[found], x2b[found], K1b[found], K2b[found]
+        Rf, tf, inf = calibrated_pose(essential_from_fundamental(F[found], K1f, K2f), x1f, x2f, K1f, K2f, candidates[found],
+                                      config, generator, mask[found])
+        P1 = projection_matrix(K1f, torch.eye(3, dtype=torch.float64, device=K1b.device).expand(found.numel(), 3, 3),
+                               torch.zeros(found.numel(), 3, dtype=torch.float64, device=K1b.device))
+        Xf = triangulate_points(x1f, x2f, P1, projection_matrix(K2f, Rf, tf), config.triangulation)  # (B', N, 3)
+        depth2 = (Xf @ Rf.transpose(-1, -2) + tf[:, None, :])[..., 2]
+        inf = inf & (Xf[..., 2] > 0) & (depth2 > 0) & torch.isfinite(Xf).all(-1)
+        R[found], t[found], inliers[found], X[found] = Rf, tf, inf, torch.where(inf[..., None], Xf, 0.0)
+    success = success & (inliers.sum(-1) >= 5)
+    if valid is None:
+        _raise_on_failure(success, unbatched)
+    R, t = torch.where(success[:, None, None], R, torch.eye(3, dtype=torch.float64, device=R.device)), t * success[:, None]
+    inliers = inliers & success[:, None]
+    F = torch.where(success[:, None, None], fundamental_from_pose(K1b, K2b, R, t), 0.0)
     points = tuple(X[b][inliers[b]].to(dtype) for b in range(B))
-    result = RelativePose(R=R.to(dtype), t=t.to(dtype), inlier_mask=inliers, points3d=points, F=F.to(dtype), num_trials=trials)
+    result = RelativePose(R=R.to(dtype), t=t.to(dtype), inlier_mask=inliers, points3d=points, F=F.to(dtype), num_trials=trials,
+                          success=success)
     if unbatched:
         result = _unbatch(result)
     return result

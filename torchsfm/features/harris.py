@@ -18,6 +18,7 @@ from kornia.filters import gaussian_blur2d, spatial_gradient
 from torch import Tensor, nn
 
 from torchsfm.config import HarrisConfig
+from torchsfm.errors import InputError
 
 
 @dataclass
@@ -133,9 +134,16 @@ def detect_corners(image: Tensor, config: HarrisConfig | None = None) -> Corners
 
     Returns:
         :class:`Corners` padded to the largest count in the batch.
+
+    Raises:
+        InputError: images too small to hold a corner inside the border.
     """
     config = config or HarrisConfig()
     B, _, H, W = image.shape
+    smallest = 2 * max(config.border, config.window // 2) + 1
+    if min(H, W) < smallest:
+        raise InputError(f"images of {W}x{H} px are too small for Harris corners: a corner lies {config.border} px "
+                         f"(harris.border) inside the image, so each side needs {smallest} px")
     response = harris_response(image, config.k, config.window)
     half = config.window // 2
     is_peak = response == functional.max_pool2d(response, config.window, stride=1, padding=half)

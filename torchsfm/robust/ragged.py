@@ -14,3 +14,12 @@ def pad_rows(rows: list[Tensor]) -> tuple[Tensor, Tensor]:
     data = rows[0].new_zeros(*valid.shape, rows[0].shape[-1])
     data[valid] = torch.cat(rows)
     return data, valid
+
+
+def fill_padding(data: Tensor, valid: Tensor) -> Tensor:
+    """(B, N, D) rows with every row that is not ``valid`` (B, N) replaced by its problem's first
+    valid row (zeros in a problem without one): padding then holds finite, ordinary values, so
+    every computation on it stays finite while its weight or mask leaves it out."""
+    first = data[torch.arange(data.shape[0], device=data.device), valid.long().argmax(-1)]  # (B, D)
+    first = torch.where(valid.any(-1, keepdim=True), first, 0.0)
+    return torch.where(valid[..., None], data, first[:, None])

@@ -67,6 +67,8 @@ def coarse_features(greys: Tensor, config: PairsConfig) -> CoarseFeatures:
 
 def _mutual_best(ncc: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
     """Mutually best pairs above ``threshold`` of one (K1, K2) NCC table."""
+    if ncc.numel() == 0:
+        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long)
     best2 = ncc.argmax(1)
     best1 = ncc.argmax(0)
     index1 = torch.arange(ncc.shape[0])
@@ -78,6 +80,8 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     """(V, V) number of mutually best coarse NCC matches above ``threshold`` (0 on the diagonal)."""
     V = features.patches.shape[0]
     scores = torch.zeros(V, V, dtype=torch.long)
+    if features.patches.shape[1] == 0:  # no view has a coarse corner
+        return scores
     for i in range(V - 1):  # the views after i only: a mutual best match is mutual both ways
         ncc = features.patches[i + 1:] @ features.patches[i].T  # (V - i - 1, L, K): corner l of view v, corner k of i
         best2 = ncc.argmax(1)  # (.., K): best partner in view v of each corner of i

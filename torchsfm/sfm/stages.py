@@ -24,7 +24,7 @@ from torchsfm.camera import undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
-from torchsfm.images import is_grey_bytes, to_grey_bytes
+from torchsfm.images import check_image, is_grey_bytes, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
@@ -90,9 +90,11 @@ class ViewSet:
            estimate_focal: bool = False, exif_focal: float | None = None, colours: list[Tensor | None] | None = None) -> ViewSet:
         """A state for decoded images of one size with K (3, 3) or (V, 3, 3)."""
         V = len(images)
+        for v, image in enumerate(images):
+            check_image(image, f"image {v}")
         sizes = {tuple(image.shape[-2:]) for image in images}
-        if len(sizes) != 1 or any(image.dim() != 3 or image.shape[0] not in (1, 3) for image in images):
-            raise InputError(f"all images must be (3 or 1, H, W) of one size, got {sorted({tuple(i.shape) for i in images})}")
+        if len(sizes) != 1:
+            raise InputError(f"all images must be of one size, got {sorted({tuple(i.shape) for i in images})}")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],

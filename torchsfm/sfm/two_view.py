@@ -20,10 +20,10 @@ from torch import Tensor, nn
 
 from torchsfm.camera import Camera, check_intrinsics, undistort_points
 from torchsfm.config import Config
-from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError, ShapeError
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError
 from torchsfm.estimators.two_view_geometry import RelativePose, RelativePoseEstimator
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import to_grey
+from torchsfm.images import check_image, to_grey
 from torchsfm.matching.matcher import PutativeMatches, chain_matches, match_corners
 from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects
 from torchsfm.reconstruction import Reconstruction
@@ -35,9 +35,7 @@ Progress = Callable[[str], None]
 
 def _check_images(image1: Tensor, image2: Tensor, names: tuple[str, str] = ("image1", "image2")) -> None:
     for name, image in zip(names, (image1, image2)):
-        if not isinstance(image, Tensor) or image.dim() != 3 or image.shape[0] not in (1, 3):
-            shape = tuple(image.shape) if isinstance(image, Tensor) else type(image).__name__
-            raise ShapeError(f"{name} must be a (3, H, W) colour or (1, H, W) grey tensor, got {shape}")
+        check_image(image, name)
     if image1.shape[-2:] != image2.shape[-2:]:
         (h1, w1), (h2, w2) = image1.shape[-2:], image2.shape[-2:]
         raise InputError(f"the images differ in size: {names[0]} is {w1}x{h1}, {names[1]} {w2}x{h2}")

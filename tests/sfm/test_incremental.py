@@ -155,13 +155,13 @@ def test_forward_motion_too_slow_for_any_matched_pair_starts_from_a_wider_pair(s
 def test_a_video_with_6_m_between_frames_registers_every_frame(shared_data):
     """KITTI 06 every fifth frame (6 m forward per step): the points the last frame sees were
     triangulated behind it, and their depth errors put them pixels off under its true pose; its
-    resection keeps too few inliers at 2 px and registers at the widened 8 px. Every frame within
-    0.5% of the path, and the loose one reported."""
+    resection keeps too few inliers at 2 px and registers at a widened threshold. Every frame
+    within 0.5% of the path, and the loose one reported."""
     sequence = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
     frames = list(range(0, 51, 5))
     model = torchsfm.reconstruct([sequence.images[k] for k in frames], sequence.K[0], generator=torch.Generator().manual_seed(0))
     assert model.view_indices == list(range(11))
-    assert model.loose_resections == {10: 8.0}
+    assert list(model.loose_resections) == [10] and model.loose_resections[10] > torchsfm.Config().resection.ransac.inlier_threshold
     errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[frames], sequence.t[frames])
     assert float(errors.centre.max()) / errors.extent < 0.005
     assert float(errors.rotation.max()) < 1.0  # degrees

@@ -28,6 +28,7 @@ MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from 
 MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
+RESECTION_SHARE = 0.75  # the views that see this share of the best view's points are resected together (OpenMVG's rule)
 
 
 def triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
@@ -233,7 +234,8 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
     return result.final_cost / max(int(usable.sum()), 1)
 
 
-def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Generator) -> tuple[AbsolutePose, float] | str:
+def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Generator,
+           threshold: float | None = None) -> tuple[AbsolutePose, float] | str:
     """The pose of a new view from its tracks' points X (N, 3) and pixels x (N, 2) and the
     threshold (px) it needed, or why there is none.
 
@@ -242,9 +244,10 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
     pose, many of them reproject several pixels off. A resection that keeps fewer than
     ``min_resection_inliers`` is therefore tried again at double the threshold, up to
     ``max_resection_threshold`` px (chance agreement stays negligible: 20 wrong pairs within 8 px
-    of one pose do not happen), and the bundle adjustments restore the precision."""
+    of one pose do not happen), and the bundle adjustments restore the precision. ``threshold``:
+    where the ladder starts (default: the RANSAC threshold)."""
     settings, needed = config.resection, config.reconstruction.min_resection_inliers
-    threshold = settings.ransac.inlier_threshold
+    threshold = threshold or settings.ransac.inlier_threshold
     while True:
         trial = dataclasses.replace(config, resection=dataclasses.replace(
             settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=threshold)))
@@ -258,6 +261,30 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
         if 2 * threshold > config.reconstruction.max_resection_threshold:
             return f"resection kept {kept} inliers within {threshold:g} px (needs {needed})"
         threshold *= 2
+
+
+def resect_views(model: MapperState, views: list[int], config: Config, generator: torch.Generator
+                 ) -> list[tuple[AbsolutePose, float] | str]:
+    """:func:`resect` of several views from the model's points as it stands: the first rung of
+    every view in one ragged call; a view that keeps too few inliers there climbs the rest of
+    its threshold ladder on its own."""
+    tracks, needed = model.tracks, config.reconstruction.min_resection_inliers
+    rows = [(tracks.view == view) & model.has_point[tracks.track] for view in views]
+    if len(views) == 1:
+        return [resect(model.points[tracks.track[rows[0]]], model.pixels[rows[0]], model.K[views[0]], config, generator)]
+    data, valid = pad_rows([torch.cat([model.points[tracks.track[mine]], model.pixels[mine]], -1) for mine in rows])
+    poses = estimate_absolute_pose(data[..., :3], data[..., 3:], model.K[views], valid=valid, config=config, generator=generator)
+    threshold = config.resection.ransac.inlier_threshold
+    found = []
+    for b, (view, mine) in enumerate(zip(views, rows)):
+        if bool(poses.success[b]) and int(poses.inlier_mask[b].sum()) >= needed:
+            found.append((AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : int(mine.sum())],
+                                       num_trials=poses.num_trials[b], success=poses.success[b]), threshold))
+        elif 2 * threshold > config.reconstruction.max_resection_threshold:
+            found.append(f"resection kept {int(poses.inlier_mask[b].sum())} inliers within {threshold:g} px (needs {needed})")
+        else:
+            found.append(resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, generator, 2 * threshold))
+    return found
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
@@ -320,9 +347,11 @@ def map_incrementally(state, config: Config) -> Reconstruction:
 
 def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dict[int, str]]:
     """One model over the ``allowed`` (V,) views: the initial pair among them, then repeatedly the
-    view that sees most reconstructed tracks (a view that fails is retried after the next
-    registration), bundle adjustment, retriangulation, outlier removal and, when K was estimated,
-    its refinement. Returns the model and, for every allowed view left out, the reason."""
+    views that see most reconstructed tracks — every view that sees ``RESECTION_SHARE`` of the
+    best one's count, resected together (:func:`resect_views`) and registered most first (a view
+    that fails is retried after the next registration) — then bundle adjustment,
+    retriangulation, outlier removal and, when K was estimated, its refinement. Returns the
+    model and, for every allowed view left out, the reason."""
     tracks, V = state.tracks, len(state.corners)
     timings = state.timings
 
@@ -355,33 +384,41 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         if not bool(waiting.any()):
             break
         seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
-        view = int(torch.where(waiting, seen, -1).argmax())  # the first of the views that see most
-        if int(seen[view]) < config.reconstruction.min_resection_inliers:
+        most = int(torch.where(waiting, seen, -1).max())
+        if most < config.reconstruction.min_resection_inliers:
             for v in torch.nonzero(waiting).flatten().tolist():
                 unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers})"
             break
-        state.report(f"registering view {view} ({state.names[view]}) from {int(seen[view])} points")
-        mine = (tracks.view == view) & model.has_point[tracks.track]
-        found = timed("resection", lambda: resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, state.generator))
-        if isinstance(found, str):
-            unregistered[view] = found
-            continue
-        pose, threshold = found
-        if threshold > config.resection.ransac.inlier_threshold:
-            model.loose_resections[view] = threshold
-        model.R[view], model.t[view] = pose.R, pose.t
-        model.registered[view] = True
-        order.append(view)
-        unregistered.clear()  # more points now: every view that failed gets another try
-        timed("triangulation", lambda: model.triangulate_new(view))
-        since_bundle += 1
-        if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
-            timed("bundle adjustment", lambda: bundle(model, config, first))
-            since_bundle = 0
-        elif window and len(order) > window:  # the model outgrew the window: adjust the newest views only
-            free = torch.zeros_like(model.registered)
-            free[order[-window:]] = True
-            timed("local bundle adjustment", lambda: bundle(model, config, first, free_views=free))
+        # the views that see nearly as many points as the best one, most first: resected together
+        share = max(config.reconstruction.min_resection_inliers, math.ceil(RESECTION_SHARE * most))
+        candidates = torch.nonzero(waiting & (seen >= share)).flatten()
+        candidates = candidates[torch.argsort(seen[candidates], descending=True, stable=True)].tolist()
+        state.report(f"registering view{'s' if len(candidates) > 1 else ''} "
+                     + ", ".join(f"{view} ({state.names[view]})" for view in candidates) + f" from {most} points or more")
+        found = timed("resection", lambda: resect_views(model, candidates, config, state.generator))
+        registered = 0
+        for view, outcome in zip(candidates, found):
+            if isinstance(outcome, str):
+                unregistered[view] = outcome
+                continue
+            pose, threshold = outcome
+            if threshold > config.resection.ransac.inlier_threshold:
+                model.loose_resections[view] = threshold
+            model.R[view], model.t[view] = pose.R, pose.t
+            model.registered[view] = True
+            order.append(view)
+            registered += 1
+            timed("triangulation", lambda: model.triangulate_new(view))
+            since_bundle += 1
+            if config.reconstruction.bundle_every and since_bundle >= config.reconstruction.bundle_every:
+                timed("bundle adjustment", lambda: bundle(model, config, first))
+                since_bundle = 0
+            elif window and len(order) > window:  # the model outgrew the window: adjust the newest views only
+                free = torch.zeros_like(model.registered)
+                free[order[-window:]] = True
+                timed("local bundle adjustment", lambda: bundle(model, config, first, free_views=free))
+        if registered:
+            unregistered.clear()  # more points now: every view that failed gets another try
     state.report(f"bundle adjustment of {int(model.registered.sum())} views and {int(model.has_point.sum())} points")
     timed("bundle adjustment", lambda: bundle(model, config, first))
     for _ in range(config.reconstruction.retriangulations):  # the adjusted cameras triangulate tracks the early ones could not

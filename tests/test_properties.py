@@ -305,3 +305,22 @@ def test_reconstruct(seed, views, height, width, content):
 def test_with_overrides(key, value):
     config = _call(torchsfm.with_overrides, torchsfm.Config(), [f"{key}={value}"])
     assert config is None or isinstance(config, torchsfm.Config)
+
+
+@CASES
+@given(pattern=st.tuples(st.integers(-2, 8), st.integers(-2, 8)),
+       square=st.one_of(st.floats(-1e3, 1e6), st.sampled_from([math.nan, math.inf, -math.inf, 0.0])))
+def test_board_points(pattern, square):
+    points = _call(torchsfm.board_points, pattern, square)
+    if points is not None:
+        assert points.shape == (pattern[0] * pattern[1], 2) and _finite(points)
+
+
+@CASES
+@given(text=st.one_of(st.text(max_size=60), st.sampled_from(["pairs:\n  mode: sequential\n", "harris: 3\n", "[1, 2]\n",
+                                                               "fundamental:\n  ransac:\n    confidence: 2.0\n", "a: b: c\n"])))
+def test_load_config(tmp_path_factory, text):
+    path = tmp_path_factory.mktemp("config") / "config.yaml"
+    path.write_text(text)
+    config = _call(torchsfm.load_config, path)
+    assert config is None or isinstance(config, torchsfm.Config)

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from torchsfm.camera import distort_normalized, from_homogeneous, to_homogeneous
 from torchsfm.config import CalibrationConfig, LMConfig
-from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError
+from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError
 from torchsfm.geometry.homography import homography_dlt
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, rotation_to_axis_angle
@@ -46,6 +46,10 @@ class Calibration:
 def board_points(pattern: tuple[int, int], square: float) -> Tensor:
     """Inner corners of a (cols, rows) board on its plane, row by row: (cols * rows, 2) float64."""
     cols, rows = pattern
+    if cols < 1 or rows < 1:
+        raise InputError(f"a board pattern needs at least one corner per row and column, got {cols}x{rows}")
+    if not math.isfinite(square) or square <= 0:
+        raise InputError(f"the board's square size must be a finite positive length, got {square}")
     j, i = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64), indexing="ij")
     return square * torch.stack([i, j], dim=-1).reshape(-1, 2)
 

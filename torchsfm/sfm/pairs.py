@@ -68,7 +68,7 @@ def coarse_features(greys: Tensor, config: PairsConfig) -> CoarseFeatures:
 def _mutual_best(ncc: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
     """Mutually best pairs above ``threshold`` of one (K1, K2) NCC table."""
     if ncc.numel() == 0:
-        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.long)
+        return torch.zeros(0, dtype=torch.long, device=ncc.device), torch.zeros(0, dtype=torch.long, device=ncc.device)
     best2 = ncc.argmax(1)
     best1 = ncc.argmax(0)
     index1 = torch.arange(ncc.shape[0])

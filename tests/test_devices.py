@@ -9,7 +9,7 @@ import torch
 import torchsfm
 from torchsfm.testing import synthetic_moving_scene
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device here"))]
 K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
 
@@ -49,6 +49,21 @@ def test_estimators_stay_on_the_device(device):
     torch.testing.assert_close(absolute.R.cpu(), torch.eye(3, dtype=torch.float64), atol=1e-8, rtol=0)
 
 
+def test_ragged_batches_stay_on_the_device(device):
+    X, x1, x2 = _two_views(device)
+    valid = torch.ones(2, X.shape[0], dtype=torch.bool, device=device)
+    valid[1, 50:] = False
+    Kd = K.to(device)
+    batch = [t.expand(2, *t.shape).clone() for t in (X, x1, x2)]
+    for result in (torchsfm.estimate_fundamental(batch[1], batch[2], valid=valid, generator=torch.Generator(device=device).manual_seed(0)),
+                   torchsfm.estimate_relative_pose(batch[1], batch[2], Kd, Kd, valid=valid,
+                                                   generator=torch.Generator(device=device).manual_seed(0)),
+                   torchsfm.estimate_absolute_pose(batch[0], batch[1], Kd, valid=valid,
+                                                   generator=torch.Generator(device=device).manual_seed(0))):
+        assert _on(device, result.inlier_mask, result.success) and result.success.tolist() == [True, True]
+        assert torch.equal(result.inlier_mask, valid)
+
+
 def test_moving_object_rejection_stays_on_the_device(device):
     scene = synthetic_moving_scene(0, num_frames=3)
     tracks = scene.tracks.to(device)
@@ -56,6 +71,9 @@ def test_moving_object_rejection_stays_on_the_device(device):
     assert _on(device, result.background_mask)
     whole = torchsfm.reject_moving_objects_in_tracks(tracks, generator=torch.Generator(device=device).manual_seed(0))
     assert _on(device, whole.background_mask, whole.tested)
+    config = torchsfm.with_overrides(torchsfm.Config(), ["moving_objects.track_method=both"])
+    votes = torchsfm.reject_moving_objects_in_tracks(tracks, config=config, generator=torch.Generator(device=device).manual_seed(0))
+    assert _on(device, votes.background_mask, votes.rejection_share)
 
 
 def test_bundle_adjustment_stays_on_the_device(device):

@@ -24,6 +24,7 @@ from torch import Tensor
 
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.validation import check_finite, check_shapes
+from torchsfm.numerics import floor_tiny
 
 
 def to_homogeneous(x: Tensor) -> Tensor:
@@ -41,7 +42,7 @@ def check_intrinsics(**matrices: Tensor) -> None:
     check_shapes(**{name: (K, "* 3 3") for name, K in matrices.items()})
     check_finite(**matrices)
     for name, K in matrices.items():
-        scale = K.abs().amax(dim=(-2, -1)).clamp_min(1e-300)
+        scale = floor_tiny(K.abs().amax(dim=(-2, -1)))
         if bool((torch.linalg.det(K).abs() <= 1e-12 * scale**3).any()):
             raise DegenerateConfigurationError(f"{name} is singular: an intrinsic matrix must be invertible")
 
@@ -124,7 +125,7 @@ def undistort_normalized(x: Tensor, distortion: Tensor, iterations: int = 20) ->
         value = r * (1 + k1 * r2 + k2 * r2 * r2) - r_d
         slope = 1 + 3 * k1 * r2 + 5 * k2 * r2 * r2
         r = r - value / slope
-    scale = torch.where(r_d > 0, r / r_d.clamp_min(1e-300), torch.ones_like(r_d))
+    scale = torch.where(r_d > 0, r / floor_tiny(r_d), torch.ones_like(r_d))
     return x * scale[..., None]
 
 

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.geometry.rotation import angle_between, nearest_rotation, rotation_angle
+from torchsfm.numerics import floor_tiny
 
 
 @dataclass
@@ -38,7 +39,7 @@ def similarity_alignment(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -
     A = nearest_rotation((R_true.transpose(-1, -2) @ R).sum(0))
     rotated = centres @ A.T
     mean, true_mean = rotated.mean(0), true_centres.mean(0)
-    scale = ((rotated - mean) * (true_centres - true_mean)).sum() / (rotated - mean).square().sum().clamp_min(1e-300)
+    scale = ((rotated - mean) * (true_centres - true_mean)).sum() / floor_tiny((rotated - mean).square().sum())
     return scale, A, true_mean - scale * mean
 
 

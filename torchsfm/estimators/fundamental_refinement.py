@@ -17,6 +17,7 @@ from torchsfm.geometry.fundamental import normalize_scale, sampson_jacobian, sam
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
 from torchsfm.optim.lm import LMResult, levenberg_marquardt
+from torchsfm.numerics import floor_tiny
 
 
 def _to_orthonormal(F: Tensor) -> Tensor:
@@ -25,7 +26,7 @@ def _to_orthonormal(F: Tensor) -> Tensor:
     V = Vh.transpose(-1, -2)
     U = U * torch.sign(torch.linalg.det(U))[:, None, None]
     V = V * torch.sign(torch.linalg.det(V))[:, None, None]
-    sigma = S[:, 1:2] / S[:, 0:1].clamp_min(1e-300)
+    sigma = S[:, 1:2] / floor_tiny(S[:, 0:1])
     return torch.cat([U.flatten(1), V.flatten(1), sigma], dim=-1)
 
 

@@ -21,12 +21,13 @@ from torch import Tensor
 
 from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.rotation import nearest_rotation, quaternion_to_rotation, skew
+from torchsfm.numerics import floor_tiny
 
 
 def essential_from_fundamental(F: Tensor, K1: Tensor, K2: Tensor) -> Tensor:
     """E = K2ᵀ F K1 (the ERRATA's general form of eq. 3.4.1), scaled to ‖E‖_F = sqrt(2)."""
     E = K2.transpose(-1, -2) @ F @ K1
-    return E * (math.sqrt(2) / E.flatten(-2).norm(dim=-1).clamp_min(1e-300))[..., None, None]
+    return E * (math.sqrt(2) / floor_tiny(E.flatten(-2).norm(dim=-1)))[..., None, None]
 
 
 def project_to_essential(E: Tensor) -> Tensor:
@@ -68,7 +69,7 @@ def pose_candidates_linear(E: Tensor) -> tuple[Tensor, Tensor]:
                                torch.linalg.cross(e[..., 2, :], e[..., 0, :])], dim=-2)
         best = crosses.norm(dim=-1).argmax(-1)
         cross = torch.gather(crosses, -2, best[..., None, None].expand(*best.shape, 1, 3)).squeeze(-2)
-        t = t_sign * cross / cross.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        t = t_sign * cross / floor_tiny(cross.norm(dim=-1, keepdim=True))
         k = torch.sqrt(0.5 * E.square().sum(dim=(-2, -1)))[..., None]
         columns = []
         for i in range(3):
@@ -125,8 +126,8 @@ def two_view_depths(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tenso
     rotated = h1 @ R.transpose(-1, -2)  # (*, N, 3): R x̃1
     t = t[..., None, :].expand_as(rotated)
     x2_cross_rotated = torch.linalg.cross(h2, rotated)
-    depth1 = -(x2_cross_rotated * torch.linalg.cross(h2, t)).sum(-1) / x2_cross_rotated.square().sum(-1).clamp_min(1e-300)
-    depth2 = (x2_cross_rotated * torch.linalg.cross(t, rotated)).sum(-1) / x2_cross_rotated.square().sum(-1).clamp_min(1e-300)
+    depth1 = -(x2_cross_rotated * torch.linalg.cross(h2, t)).sum(-1) / floor_tiny(x2_cross_rotated.square().sum(-1))
+    depth2 = (x2_cross_rotated * torch.linalg.cross(t, rotated)).sum(-1) / floor_tiny(x2_cross_rotated.square().sum(-1))
     return depth1, depth2
 
 

@@ -14,6 +14,7 @@ from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
 from torchsfm.geometry.rotation import skew
 from torchsfm.geometry.small_linalg import smallest_eigenvector_sym3
+from torchsfm.numerics import floor_tiny
 
 
 def enforce_rank2(F: Tensor) -> Tensor:
@@ -25,7 +26,7 @@ def enforce_rank2(F: Tensor) -> Tensor:
 
 def normalize_scale(F: Tensor) -> Tensor:
     """Scale a homogeneous 3x3 matrix to unit Frobenius norm: (*, 3, 3)."""
-    return F / F.flatten(-2).norm(dim=-1).clamp_min(1e-300)[..., None, None]
+    return F / floor_tiny(F.flatten(-2).norm(dim=-1))[..., None, None]
 
 
 def epipolar_design_matrix(x1: Tensor, x2: Tensor) -> Tensor:
@@ -193,7 +194,7 @@ def sampson_residual(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     """Signed Sampson residual (pixels); its square is the Sampson error of eq. 3.3.6: (*, N)."""
     algebraic, line2, line1 = _epipolar_terms(F, x1, x2)
     denominator = line2[..., :2, :].square().sum(-2) + line1[..., :2, :].square().sum(-2)
-    return algebraic / denominator.clamp_min(1e-300).sqrt()
+    return algebraic / floor_tiny(denominator).sqrt()
 
 
 def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor, directions: Tensor) -> Tensor:
@@ -213,7 +214,7 @@ def sampson_jacobian(F: Tensor, x1: Tensor, x2: Tensor, directions: Tensor) -> T
     algebraic = (h2 * line2).sum(-1)
     first_two = torch.tensor([1.0, 1.0, 0.0], dtype=F.dtype, device=F.device)
     line2, line1 = line2 * first_two, line1 * first_two
-    denominator = (line2.square().sum(-1) + line1.square().sum(-1)).clamp_min(1e-300)
+    denominator = floor_tiny((line2.square().sum(-1) + line1.square().sum(-1)))
     c = (algebraic / denominator)[..., None]
     u = h2 - c * line2
     v = c * line1
@@ -249,8 +250,8 @@ def sampson_error_of_hypotheses(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
 def epipolar_line_distances(F: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:
     """Distances (pixels) of x1 to its epipolar line Fᵀx2 and of x2 to F x1: two (*, N)."""
     algebraic, line2, line1 = _epipolar_terms(F, x1, x2)
-    d1 = algebraic.abs() / line1[..., :2, :].norm(dim=-2).clamp_min(1e-300)
-    d2 = algebraic.abs() / line2[..., :2, :].norm(dim=-2).clamp_min(1e-300)
+    d1 = algebraic.abs() / floor_tiny(line1[..., :2, :].norm(dim=-2))
+    d2 = algebraic.abs() / floor_tiny(line2[..., :2, :].norm(dim=-2))
     return d1, d2
 
 

@@ -8,6 +8,7 @@ from torch import Tensor
 from torchsfm.camera import from_homogeneous, to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
+from torchsfm.numerics import floor_tiny
 
 
 def homography_dlt(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Tensor:
@@ -23,7 +24,7 @@ def homography_dlt(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Ten
     w = None if weights is None else torch.cat([weights, weights], dim=-1)
     H = smallest_right_singular_vector(A, w).reshape(*A.shape[:-2], 3, 3)
     H = torch.linalg.inv(T2) @ H @ T1
-    return H / H.flatten(-2).norm(dim=-1)[..., None, None].clamp_min(1e-300)
+    return H / floor_tiny(H.flatten(-2).norm(dim=-1)[..., None, None])
 
 
 def transfer_error(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:

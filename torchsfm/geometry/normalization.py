@@ -7,6 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import floor_tiny
+
 
 def hartley_normalize(x: Tensor, weights: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Translate the (weighted) centroid to the origin and scale the mean distance to sqrt(D).
@@ -23,11 +25,11 @@ def hartley_normalize(x: Tensor, weights: Tensor | None = None) -> tuple[Tensor,
     D = x.shape[-1]
     if weights is None:
         weights = torch.ones_like(x[..., 0])
-    total = weights.sum(-1, keepdim=True).clamp_min(1e-300)  # (*, 1)
+    total = floor_tiny(weights.sum(-1, keepdim=True))  # (*, 1)
     centroid = (weights[..., None] * x).sum(-2) / total  # (*, D)
     centered = x - centroid[..., None, :]
     mean_distance = (weights * centered.norm(dim=-1)).sum(-1, keepdim=True) / total  # (*, 1)
-    scale = torch.where(mean_distance > 0, math.sqrt(D) / mean_distance.clamp_min(1e-300), torch.ones_like(mean_distance))
+    scale = torch.where(mean_distance > 0, math.sqrt(D) / floor_tiny(mean_distance), torch.ones_like(mean_distance))
     T = torch.diag_embed(torch.cat([scale.expand(*scale.shape[:-1], D), torch.ones_like(scale)], dim=-1))
     T[..., :D, D] = -scale * centroid
     return centered * scale[..., None], T

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.rotation import skew
+from torchsfm.numerics import floor_tiny
 
 
 def canonical_cameras(F: Tensor) -> tuple[Tensor, Tensor]:
@@ -28,7 +29,7 @@ def canonical_cameras(F: Tensor) -> tuple[Tensor, Tensor]:
 def projective_resection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tensor:
     """DLT for a projective camera from homogeneous points: X (*, N, 4), x (*, N, 2), N >= 6
     (non-zero weights) -> P (*, 3, 4) of unit Frobenius norm, x ~ P X."""
-    X = X / X.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    X = X / floor_tiny(X.norm(dim=-1, keepdim=True))
     zero = torch.zeros_like(X)
     u, v = x[..., 0:1], x[..., 1:2]
     rows_u = torch.cat([-X, zero, u * X], dim=-1)  # u p3ᵀX − p1ᵀX = 0
@@ -79,6 +80,6 @@ def triangulate_multiview(P: Tensor, x: Tensor, weights: Tensor, iterations: int
         X = torch.linalg.eigh(M).eigenvectors[..., 0]  # (N, 4)
         if step < iterations:
             depth = (P[:, None, 2] * X).sum(-1).abs()  # (V, N)
-            scale = weights / depth.clamp_min(1e-12 * float(depth.max().clamp_min(1e-300)))
-            scale = scale / scale.amax(0, keepdim=True).clamp_min(1e-300)
+            scale = weights / depth.clamp_min(1e-12 * float(floor_tiny(depth.max())))
+            scale = scale / floor_tiny(scale.amax(0, keepdim=True))
     return X

@@ -18,6 +18,7 @@ from torchsfm.camera import from_homogeneous, to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import nearest_rotation
+from torchsfm.numerics import floor_tiny
 
 
 def dlt_projection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tensor:
@@ -37,7 +38,7 @@ def dlt_projection(X: Tensor, x: Tensor, weights: Tensor | None = None) -> Tenso
     in_front = torch.sign(to_homogeneous(X) @ P[..., 2, :, None])[..., 0]  # (*, N): sign of the depths
     sign = torch.sign((in_front if weights is None else in_front * weights).sum(-1))
     P = P * torch.where(sign == 0, 1.0, sign)[..., None, None]
-    return P / P.flatten(-2).norm(dim=-1)[..., None, None].clamp_min(1e-300)
+    return P / floor_tiny(P.flatten(-2).norm(dim=-1)[..., None, None])
 
 
 def pose_from_projection(P: Tensor, K: Tensor, X: Tensor | None = None) -> tuple[Tensor, Tensor]:

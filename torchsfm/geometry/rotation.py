@@ -11,6 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import floor_tiny
+
 
 _SKEW_BASIS = torch.tensor(
     [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0], [0, -1, 0, 1, 0, 0, 0, 0, 0]], dtype=torch.float64
@@ -45,7 +47,7 @@ def rotation_to_axis_angle(R: Tensor) -> Tensor:
     w, v = q[..., 0], q[..., 1:]
     v_norm = v.norm(dim=-1)
     angle = 2 * torch.atan2(v_norm, w)
-    scale = torch.where(v_norm > 1e-12, angle / v_norm.clamp_min(1e-300), 2.0 / w.clamp_min(1e-300))
+    scale = torch.where(v_norm > 1e-12, angle / floor_tiny(v_norm), 2.0 / floor_tiny(w))
     return scale[..., None] * v
 
 

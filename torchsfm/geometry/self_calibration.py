@@ -15,6 +15,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import floor_tiny
+
 
 def intrinsics(focal: float | Tensor, principal_point: Tensor) -> Tensor:
     """K (3, 3) of square pixels, zero skew: focal (px), principal point (2,)."""
@@ -33,7 +35,7 @@ def singular_value_gap(F: Tensor, focal: Tensor, principal_point: Tensor) -> Ten
     K[:, 2, 2] = 1
     E = K[:, None].transpose(-1, -2) @ F.double()[None] @ K[:, None]  # (G, P, 3, 3)
     sigma = torch.linalg.svdvals(E)
-    return (sigma[..., 0] - sigma[..., 1]) / (sigma[..., 0] + sigma[..., 1]).clamp_min(1e-300)
+    return (sigma[..., 0] - sigma[..., 1]) / floor_tiny((sigma[..., 0] + sigma[..., 1]))
 
 
 def focal_from_fundamentals(F: Tensor, principal_point: Tensor, prior: float, *, spread: float = 4.0,

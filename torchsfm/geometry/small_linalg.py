@@ -10,6 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import floor_tiny
+
 
 def symmetric_eigenvalues3(M: Tensor) -> Tensor:
     """Eigenvalues of symmetric 3x3 matrices in ascending order (Smith 1961): (*, 3, 3) -> (*, 3)."""
@@ -18,7 +20,7 @@ def symmetric_eigenvalues3(M: Tensor) -> Tensor:
     diagonal = torch.diagonal(M, dim1=-2, dim2=-1) - q[..., None]
     p = torch.sqrt((diagonal.square().sum(-1) + 2 * off) / 6)
     eye = torch.eye(3, dtype=M.dtype, device=M.device)
-    shifted = (M - q[..., None, None] * eye) / p.clamp_min(1e-300)[..., None, None]
+    shifted = (M - q[..., None, None] * eye) / floor_tiny(p)[..., None, None]
     phi = torch.acos((torch.linalg.det(shifted) / 2).clamp(-1, 1)) / 3
     angles = phi[..., None] + torch.tensor([2 * torch.pi / 3, 4 * torch.pi / 3, 0.0], dtype=M.dtype, device=M.device)
     return q[..., None] + 2 * p[..., None] * torch.cos(angles)  # cos(phi + 2pi/3) <= cos(phi + 4pi/3) <= cos(phi)
@@ -35,7 +37,7 @@ def eigenvector_sym3(M: Tensor, eigenvalue: Tensor) -> Tensor:
                            torch.linalg.cross(rows[..., 1, :], rows[..., 2, :])], dim=-2)
     norms = crosses.norm(dim=-1)
     best = torch.gather(crosses, -2, norms.argmax(-1)[..., None, None].expand(*norms.shape[:-1], 1, 3)).squeeze(-2)
-    return best / norms.amax(-1, keepdim=True).clamp_min(1e-300)
+    return best / floor_tiny(norms.amax(-1, keepdim=True))
 
 
 def smallest_eigenvector_sym3(M: Tensor) -> Tensor:

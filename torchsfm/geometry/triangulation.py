@@ -25,6 +25,7 @@ from torchsfm.config import TriangulationConfig
 from torchsfm.errors import DegenerateConfigurationError, InputError, ShapeError
 from torchsfm.geometry.fundamental import fundamental_from_projections
 from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes
+from torchsfm.numerics import floor_tiny
 
 TriangulationFn = Callable[..., Tensor]
 
@@ -98,7 +99,7 @@ def triangulate_midpoint(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tens
     w0 = C1 - C2
     a, b, c = (d1 * d1).sum(-1), (d1 * d2).sum(-1), (d2 * d2).sum(-1)
     d, e = (d1 * w0).sum(-1), (d2 * w0).sum(-1)
-    denominator = (a * c - b * b).clamp_min(1e-300)  # 0 only for parallel rays
+    denominator = floor_tiny((a * c - b * b))  # 0 only for parallel rays
     lambda1 = (b * e - c * d) / denominator
     lambda2 = (a * e - b * d) / denominator
     midpoint = 0.5 * (C1 + lambda1[..., None] * d1 + C2 + lambda2[..., None] * d2)
@@ -150,7 +151,7 @@ def correct_correspondences(x1: Tensor, x2: Tensor, F: Tensor) -> tuple[Tensor, 
     def to_origin(x: Tensor, e: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Epipole after moving x to the origin, scaled so e_x² + e_y² = 1, and the rotation R."""
         moved = torch.stack([e[..., 0] - e[..., 2] * x[..., 0], e[..., 1] - e[..., 2] * x[..., 1], e[..., 2].expand_as(x[..., 0])], dim=-1)
-        moved = moved / moved[..., :2].norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        moved = moved / floor_tiny(moved[..., :2].norm(dim=-1, keepdim=True))
         ex, ey = moved[..., 0], moved[..., 1]
         zero, one = torch.zeros_like(ex), torch.ones_like(ex)
         R = torch.stack([ex, ey, zero, -ey, ex, zero, zero, zero, one], dim=-1).reshape(*ex.shape, 3, 3)
@@ -176,12 +177,12 @@ def correct_correspondences(x1: Tensor, x2: Tensor, F: Tensor) -> tuple[Tensor, 
     def cost(t: Tensor) -> Tensor:
         a_, b_, c_, d_ = a[..., None], b[..., None], c[..., None], d[..., None]
         f1_, f2_ = f1[..., None], f2[..., None]
-        return t * t / (1 + f1_ * f1_ * t * t) + (c_ * t + d_) ** 2 / ((a_ * t + b_) ** 2 + f2_ * f2_ * (c_ * t + d_) ** 2).clamp_min(1e-300)
+        return t * t / (1 + f1_ * f1_ * t * t) + (c_ * t + d_) ** 2 / floor_tiny(((a_ * t + b_) ** 2 + f2_ * f2_ * (c_ * t + d_) ** 2))
 
     costs = cost(t)
     best_cost, best = costs.min(dim=-1)
     t_best = t.gather(-1, best[..., None]).squeeze(-1)
-    infinity_cost = torch.where(f1 != 0, 1 / (f1 * f1).clamp_min(1e-300) + c * c / (a * a + f2 * f2 * c * c).clamp_min(1e-300), torch.full_like(f1, float("inf")))
+    infinity_cost = torch.where(f1 != 0, 1 / floor_tiny((f1 * f1)) + c * c / floor_tiny((a * a + f2 * f2 * c * c)), torch.full_like(f1, float("inf")))
     at_infinity = infinity_cost < best_cost
 
     one = torch.ones_like(t_best)

@@ -18,6 +18,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import floor_tiny
+
 
 def rigidity_residuals(support: Tensor, warped: Tensor, parallax: Tensor) -> tuple[Tensor, Tensor]:
     """Normalized rigidity residuals of every point against each support.
@@ -40,6 +42,6 @@ def rigidity_residuals(support: Tensor, warped: Tensor, parallax: Tensor) -> tup
     cross = a[0] * b[1] - b[0] * a[1]
     length_sq = dx * dx + dy * dy
     variance = length_sq[0] * (a[1] * a[1] + b[1] * b[1]) + length_sq[1] * (a[0] * a[0] + b[0] * b[0])
-    residual = torch.where(variance > 0, cross / variance.clamp_min(1e-300).sqrt(), torch.zeros_like(cross))
-    strength = ((b[0] * b[0] + b[1] * b[1]) / (0.5 * (length_sq[0] + length_sq[1])).clamp_min(1e-300)).sqrt()
+    residual = torch.where(variance > 0, cross / floor_tiny(variance).sqrt(), torch.zeros_like(cross))
+    strength = ((b[0] * b[0] + b[1] * b[1]) / floor_tiny((0.5 * (length_sq[0] + length_sq[1])))).sqrt()
     return residual, strength

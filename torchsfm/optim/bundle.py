@@ -37,6 +37,7 @@ from torchsfm.errors import InputError
 from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
 from torchsfm.optim.lm import minimize
 from torchsfm.validation import check_finite, check_shapes
+from torchsfm.numerics import floor_tiny
 
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
 DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
@@ -186,7 +187,7 @@ def _loss(squared: Tensor, kind: str, scale: float) -> tuple[Tensor, Tensor]:
     """ρ(s) and ρ'(s) of the robust loss on squared residual norms s (O,)."""
     if kind == "huber":
         inside = squared <= scale**2
-        root = squared.clamp_min(1e-300).sqrt()
+        root = floor_tiny(squared).sqrt()
         return torch.where(inside, squared, 2 * scale * root - scale**2), torch.where(inside, 1.0, scale / root)
     if kind == "cauchy":
         return scale**2 * torch.log1p(squared / scale**2), 1 / (1 + squared / scale**2)
@@ -350,12 +351,12 @@ class _SchurLinearization:
             if residual.norm() <= target:
                 break
             Sd = apply(direction)
-            step = rz / (direction * Sd).sum().clamp_min(1e-300)
+            step = rz / floor_tiny((direction * Sd).sum())
             x = x + step * direction
             residual = residual - step * Sd
             z = (preconditioner @ residual[..., None])[..., 0]
             rz_new = (residual * z).sum()
-            direction = z + (rz_new / rz.clamp_min(1e-300)) * direction
+            direction = z + (rz_new / floor_tiny(rz)) * direction
             rz = rz_new
         return x, torch.isfinite(x).all()
 

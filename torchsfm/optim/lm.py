@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import LMConfig
+from torchsfm.numerics import floor_tiny
 
 ResidualFn = Callable[[Tensor], Tensor]
 RetractFn = Callable[[Tensor, Tensor], Tensor]
@@ -103,7 +104,7 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         scale = linear.diagonal.clamp_min(1e-12) if diagonal_damping else torch.ones_like(linear.diagonal)
         return mu[:, None] * scale
 
-    mu = config.initial_damping * (torch.ones_like(cost) if diagonal_damping else linear.diagonal.amax(-1).clamp_min(1e-300))
+    mu = config.initial_damping * (torch.ones_like(cost) if diagonal_damping else floor_tiny(linear.diagonal.amax(-1)))
     nu = torch.full_like(mu, 2.0)
     failed = ~torch.isfinite(cost)
     converged = ~failed & (linear.gradient.abs().amax(-1) <= config.gradient_tolerance)
@@ -120,7 +121,7 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         candidate = problem.retract(params, delta)
         cost_new = problem.cost(candidate)
         predicted = 0.5 * (delta * (damping * delta + linear.gradient)).sum(-1)
-        rho = (cost - cost_new) / predicted.clamp_min(1e-300)
+        rho = (cost - cost_new) / floor_tiny(predicted)
         accept = active & solved & ~tiny_step & torch.isfinite(cost_new) & (rho > 0)
         small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
 

@@ -23,6 +23,7 @@ from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
+from torchsfm.numerics import floor_tiny
 
 MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
 MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
@@ -34,7 +35,7 @@ RESECTION_SHARE = 0.75  # the views that see this share of the best view's point
 def triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
     """Angle (degrees) between the rays from two centres (3,) to points X (N, 3): (N,)."""
     a, b = centre1 - X, centre2 - X
-    cosine = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(1e-300)
+    cosine = (a * b).sum(-1) / floor_tiny((a.norm(dim=-1) * b.norm(dim=-1)))
     return torch.rad2deg(torch.acos(cosine.clamp(-1, 1)))
 
 

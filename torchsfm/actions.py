@@ -8,18 +8,15 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
 import yaml
 from torch import Tensor
 
-from torchsfm.calibration.chessboard import detect_chessboard
 from torchsfm.calibration.files import calibration_yaml
-from torchsfm.calibration.zhang import board_points, calibrate_camera
+from torchsfm.calibration.stages import BoardViews, calibration_stages
 from torchsfm.config import Config, config_to_dict
-from torchsfm.errors import InputError, NotEnoughDataError
 from torchsfm.geometry.fundamental import fundamental_from_pose
 from torchsfm.io.atomic import atomic_write_bytes, atomic_write_text
 from torchsfm.io.colmap import colmap_text
@@ -32,9 +29,9 @@ from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.sfm.two_view import TwoViewReconstruction
 from torchsfm.evaluation import rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import corners_figure, matches_figure, segmentation_figure, write_png
+from torchsfm.pipeline import Progress
 
 SAMPLE = Path(__file__).resolve().parent / "data" / "fountain"
-Progress = Callable[[str], None]
 
 
 def moving_objects_summary(model: Reconstruction) -> list[dict]:
@@ -234,39 +231,25 @@ def demo(out: str | Path, *, progress: Progress | None = None) -> dict:
 
 def calibrate(inputs: list[str | Path], pattern: tuple[int, int], square: float, out: str | Path, *,
               config: Config | None = None, progress: Progress | None = None) -> dict:
-    """Calibrate from chessboard photos (files or folders): detect the boards, run Zhang's method,
-    write the calibration YAML to ``out`` and a PNG of the detected corners per image into
-    ``<out stem>_corners/``. Returns the calibration as a dict (plus ``corners_folder``).
+    """Calibrate from chessboard photos (files or folders): the stages of
+    :func:`~torchsfm.calibration.stages.calibration_stages` detect the boards and run Zhang's
+    method; then the calibration YAML goes to ``out`` and a PNG of the detected corners per image
+    into ``<out stem>_corners/``. Returns the calibration as a dict (plus ``corners_folder``).
 
     Raises NotEnoughDataError (naming the images without a board) when fewer than
     ``calibration.min_views`` boards are found.
     """
     config = config or Config()
-    report = progress or (lambda message: None)
     paths = image_paths(inputs)
-    found, figures, not_found, sizes = {}, {}, {}, set()
-    for path in paths:
-        image = read_image(path)
-        sizes.add((image.shape[-1], image.shape[-2]))
-        detection = detect_chessboard(image, pattern, config.calibration.chessboard)
-        report(f"{path.name}: {'board found' if detection.found else detection.reason}")
-        if detection.found:
-            found[path.name] = detection.corners
-            figures[path.stem] = corners_figure(image, detection.corners, pattern)
-        else:
-            not_found[path.name] = detection.reason
-    if len(sizes) > 1:
-        raise InputError(f"the photos differ in size ({sorted(sizes)}): one calibration needs one camera setting")
-    if len(found) < config.calibration.min_views:
-        missing = "; ".join(f"{name}: {reason}" for name, reason in not_found.items()) or "none missing"
-        raise NotEnoughDataError(f"the {pattern[0]}x{pattern[1]} board was found in {len(found)} of {len(paths)} images, "
-                                 f"calibration needs {config.calibration.min_views} ({missing})")
-    report(f"calibrating from {len(found)} views")
-    calibration = calibrate_camera(board_points(pattern, square), torch.stack(list(found.values())), config.calibration)
+    state = BoardViews(images=paths, names=[path.name for path in paths], pattern=pattern, square=square,
+                       report=progress or (lambda message: None))
+    state = calibration_stages(config)(state)
     out = Path(out)
     folder = out.parent / f"{out.stem}_corners"
-    text = calibration_yaml(calibration, image_size=sizes.pop(), pattern=pattern, square=square, views=list(found),
-                            not_found=not_found)
+    figures = {path.stem: corners_figure(read_image(path), state.corners[path.name], pattern) for path in paths
+               if path.name in state.corners}
+    text = calibration_yaml(state.calibration, image_size=state.sizes.pop(), pattern=pattern, square=square,
+                            views=list(state.corners), not_found=state.not_found)
     write_files(folder, {f"{stem}.png": figure for stem, figure in figures.items()})
     atomic_write_text(out, text)
     return {**yaml.safe_load(text), "corners_folder": str(folder)}

@@ -15,7 +15,7 @@ from torchsfm.config import MatchingConfig
 from torchsfm.errors import ConfigError
 from torchsfm.images import read_image
 from torchsfm.sfm.from_tracks import ReconstructObjects
-from torchsfm.sfm.pipeline import ConfiguredStage
+from torchsfm.pipeline import ConfiguredStage
 from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline
 from torchsfm.sfm.two_view import PairState, TwoViewReconstruction
 from torchsfm.sfm.view_pairs import putative_matches

@@ -26,8 +26,8 @@ from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.reconstruction import MovingObject, Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
-from torchsfm.sfm.pipeline import ConfiguredStage
-from torchsfm.sfm.stages import Progress, ViewSet
+from torchsfm.pipeline import ConfiguredStage, Progress
+from torchsfm.sfm.stages import ViewSet
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import verify_pairs
 from torchsfm.visualization import MOTION_COLOURS

@@ -22,7 +22,8 @@ from torchsfm.images import is_grey_bytes, read_image, reduce_image, to_grey_byt
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
-from torchsfm.sfm.stages import Pipeline, Progress, ViewSet, default_pipeline
+from torchsfm.pipeline import Pipeline, Progress
+from torchsfm.sfm.stages import ViewSet, default_pipeline
 from torchsfm.validation import check_finite
 
 

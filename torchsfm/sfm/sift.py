@@ -15,7 +15,7 @@ from kornia.feature import SIFTFeature, get_laf_center, match_smnn
 from torchsfm.camera import undistort_points
 from torchsfm.images import to_grey_bytes, to_unit_float
 from torchsfm.sfm.pairs import pairs_to_match
-from torchsfm.sfm.pipeline import ConfiguredStage
+from torchsfm.pipeline import ConfiguredStage
 
 if TYPE_CHECKING:  # the state type only: stages.py builds its default pipeline from these stages
     from torchsfm.sfm.stages import ViewSet

@@ -28,10 +28,10 @@ from torchsfm.images import check_image, is_grey_bytes, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
-from torchsfm.sfm.pipeline import ConfiguredStage, Pipeline
+from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (PairMatches, Progress, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
+from torchsfm.sfm.view_pairs import (PairMatches, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
                                      self_calibrate, verify_pairs)
 
 

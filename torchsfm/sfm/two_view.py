@@ -12,7 +12,6 @@ frame) → robust F (bucketed RANSAC, LM) → E → R, t → polynomial triangul
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -27,10 +26,9 @@ from torchsfm.images import check_image, to_grey
 from torchsfm.matching.matcher import PutativeMatches, chain_matches, match_corners
 from torchsfm.moving.imor import MovingObjectRejection, reject_moving_objects
 from torchsfm.reconstruction import Reconstruction
-from torchsfm.sfm.pipeline import ConfiguredStage, Pipeline
+from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.validation import check_finite, check_shapes
 
-Progress = Callable[[str], None]
 
 
 def _check_images(image1: Tensor, image2: Tensor, names: tuple[str, str] = ("image1", "image2")) -> None:

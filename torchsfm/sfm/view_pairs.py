@@ -4,7 +4,6 @@ on the tracks built from them."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import torch
@@ -27,8 +26,8 @@ from torchsfm.robust.ragged import pad_rows
 from torchsfm.robust.ransac import ransac
 from torchsfm.sfm.pairs import pairs_to_match
 from torchsfm.sfm.tracks import Tracks
+from torchsfm.pipeline import Progress
 
-Progress = Callable[[str], None]
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
 VERIFY_BATCH = 32  # view pairs per batched verification call

@@ -1,10 +1,12 @@
-"""What every pipeline's stages share: :class:`Pipeline` (run stages in order, time each) and
-:class:`ConfiguredStage` (a stage holding the config sections it reads, and no others)."""
+"""What every pipeline's stages share: :class:`Pipeline` (run stages in order, time each),
+:class:`ConfiguredStage` (a stage holding the config sections it reads, and no others) and the
+``Progress`` callback type. Below every pipeline (N-view, two-view, calibration)."""
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 from torch import nn
@@ -12,10 +14,13 @@ from torch import nn
 from torchsfm.config import Config
 from torchsfm.errors import ConfigError
 
+Progress = Callable[[str], None]
+
 
 class Pipeline(nn.Sequential):
     """Stages run in order on a state object (the N-view :class:`~torchsfm.sfm.stages.ViewSet`,
-    the two-view :class:`~torchsfm.sfm.two_view.PairState`); each stage's seconds go to
+    the two-view :class:`~torchsfm.sfm.two_view.PairState`, the calibration's
+    :class:`~torchsfm.calibration.stages.BoardViews`); each stage's seconds go to
     ``state.timings`` under its class name. ``nn.Sequential``-like: index it, slice it for a
     prefix, replace or insert a stage."""
 

@@ -144,10 +144,9 @@ class TestBadInput:
         assert torch.isfinite(estimate.F).all()
 
 
-def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
-    """Three problems of 300, 120 and 5 correspondences padded to 300 in one call: the first two
-    recover F exactly with the planted outliers found, the third (too few rows) reports failure
-    instead of raising; garbage in the padding changes nothing."""
+def _ragged_problems():
+    """Two noise-free scenes (300 and 120 correspondences, 30 % / 50 % outliers) and a third
+    problem of 5 rows, padded with NaN to 300: (scenes, x1, x2, valid)."""
     scenes = [synthetic_two_view(300, outlier_ratio=0.3, seed=1), synthetic_two_view(120, outlier_ratio=0.5, seed=3)]
     x1 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
     x2 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
@@ -156,6 +155,14 @@ def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
         n = scene.x1.shape[0]
         x1[b, :n], x2[b, :n], valid[b, :n] = scene.x1, scene.x2, True
     x1[2, :5], x2[2, :5], valid[2, :5] = scenes[0].x1[:5], scenes[0].x2[:5], True
+    return scenes, x1, x2, valid
+
+
+def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
+    """Three problems of 300, 120 and 5 correspondences padded to 300 in one call: the first two
+    recover F exactly with the planted outliers found, the third (too few rows) reports failure
+    instead of raising; garbage in the padding changes nothing."""
+    scenes, x1, x2, valid = _ragged_problems()
     estimate = torchsfm.estimate_fundamental(x1, x2, valid=valid, generator=_generator())
     assert estimate.success.tolist() == [True, True, False]
     for b, scene in enumerate(scenes):
@@ -171,14 +178,7 @@ def test_relative_pose_ragged_batch_is_exact_per_problem_and_survives_a_bad_one(
     """As for F: two noise-free problems of 300 and 120 correspondences with outliers and one of
     5 rows, NaN padding, one call: exact poses and inliers for the two, failure reported for
     the third."""
-    scenes = [synthetic_two_view(300, outlier_ratio=0.3, seed=1), synthetic_two_view(120, outlier_ratio=0.5, seed=3)]
-    x1 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
-    x2 = torch.full((3, 300, 2), float("nan"), dtype=torch.float64)
-    valid = torch.zeros(3, 300, dtype=torch.bool)
-    for b, scene in enumerate(scenes):
-        n = scene.x1.shape[0]
-        x1[b, :n], x2[b, :n], valid[b, :n] = scene.x1, scene.x2, True
-    x1[2, :5], x2[2, :5], valid[2, :5] = scenes[0].x1[:5], scenes[0].x2[:5], True
+    scenes, x1, x2, valid = _ragged_problems()
     K1 = torch.stack([scenes[0].K1, scenes[1].K1, scenes[0].K1])
     K2 = torch.stack([scenes[0].K2, scenes[1].K2, scenes[0].K2])
     pose = torchsfm.estimate_relative_pose(x1, x2, K1, K2, valid=valid, generator=_generator())

@@ -324,3 +324,26 @@ def test_load_config(tmp_path_factory, text):
     path.write_text(text)
     config = _call(torchsfm.load_config, path)
     assert config is None or isinstance(config, torchsfm.Config)
+
+
+@settings(max_examples=30, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+@given(views=st.integers(2, 3), size=st.integers(100, 240), x=st.integers(0, 500), y=st.integers(0, 250),
+       degeneracy=st.sampled_from(["none", "identical", "one_flat", "mirrored", "reversed"]))
+def test_reconstruct_on_crops_of_real_views(views, size, x, y, degeneracy):
+    """Beyond the error paths: crops of the bundled fountain views (real texture and parallax)
+    reach matching and the mapper; with repeated, flat, mirrored or reversed views too."""
+    from torchsfm.actions import SAMPLE
+    from torchsfm.images import read_image
+
+    images = [read_image(SAMPLE / f"000{v}.jpg")[:, y:y + size, x:x + size].clone() for v in (4, 5, 6)[:views]]
+    if degeneracy == "identical":
+        images = [images[0].clone() for _ in images]
+    elif degeneracy == "one_flat":
+        images[-1][:] = 128
+    elif degeneracy == "mirrored":
+        images[-1] = images[-1].flip(-1)
+    elif degeneracy == "reversed":
+        images = images[::-1]
+    model = _call(torchsfm.reconstruct, images, K, generator=torch.Generator().manual_seed(0))
+    if model is not None:
+        assert model.num_views >= 2 and _finite(model.cameras.R, model.cameras.t, model.points3d)

@@ -31,3 +31,16 @@ def test_gap_vanishes_only_at_the_true_focal_length():
     gaps = singular_value_gap(_pairs(K), torch.tensor([500.0, 600.0, 700.0], dtype=torch.float64), K[:2, 2])
     torch.testing.assert_close(gaps[1], torch.zeros(6, dtype=torch.float64), atol=1e-9, rtol=0)
     assert bool((gaps[[0, 2]] > 1e-3).all())
+
+
+def test_a_camera_translating_without_turning_leaves_the_focal_length_undetermined():
+    """Pure translations (forward driving and sideways): every focal length makes E essential,
+    so the search says so (None) instead of returning the end of its range; a little turning
+    between some pairs (0.4 rad) determines it again."""
+    K = intrinsics(707.0, torch.tensor([612.5, 184.5], dtype=torch.float64))
+    g = torch.Generator().manual_seed(1)
+    translations = torch.randn(8, 3, generator=g, dtype=torch.float64) * torch.tensor([0.1, 0.05, 1.0], dtype=torch.float64)
+    F = torch.stack([fundamental_from_pose(K, K, torch.eye(3, dtype=torch.float64), t) for t in translations])
+    assert focal_from_fundamentals(F, K[:2, 2], prior=1.2 * 1226) is None
+    focal = focal_from_fundamentals(torch.cat([F[:2], _pairs(K)]), K[:2, 2], prior=1.2 * 1226)
+    assert focal is not None and abs(focal / 707.0 - 1) < 1e-6

@@ -234,3 +234,20 @@ def test_colour_files_are_held_as_grey_and_still_colour_their_points():
     assert float((model.colors.float() - truth.float()).abs().mean()) < 15
     state = DetectCorners()(ViewSet.of([full[0][:1].expand(3, -1, -1)], sample.K[0]))
     assert state.images[0].data_ptr() == state.greys[0].data_ptr()  # a grey image is a view of its grey
+
+
+def test_driving_straight_without_K_keeps_the_focal_length_prior(shared_data):
+    """KITTI 06, every fifth frame, no K: the car drives straight, so the verified pairs' F do not
+    determine the focal length (their singular-value gap is flat). The prior (1.2 x the larger
+    side) is kept and reported instead of the search range's end (8x the truth before)."""
+    from torchsfm.images import read_image
+    from torchsfm.sfm.stages import ViewSet, default_pipeline
+
+    sequence = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
+    images = [read_image(sequence.images[k]) for k in range(0, 51, 5)]
+    messages = []
+    placeholder = torch.eye(3, dtype=torch.float64)
+    state = ViewSet.of(images, placeholder, estimate_focal=True, progress=messages.append)
+    state = default_pipeline()[:4](state)
+    assert float(state.K[0, 0, 0]) == 1.2 * 1226
+    assert any("do not determine the focal length" in message for message in messages)

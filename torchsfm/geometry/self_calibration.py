@@ -5,6 +5,13 @@ essential matrix E = Kᵀ F K has two equal non-zero singular values. Mendonça 
 the focal length is the f that makes the normalized gap (σ1 − σ2) / (σ1 + σ2) smallest, summed
 over many view pairs (robustly: the median over pairs). A 1-D search over log f (a coarse grid,
 then golden-section refinement) needs no derivative and no starting point beyond a range.
+
+Motions that leave f free are detected, not guessed at: for a camera translating without turning
+(e.g. driving straight) F = [e]x with the epipole e, and Mᵀ [e]x M = det(M) [M⁻¹ e]x is an
+essential matrix for every candidate K (M = K), so the gap is flat over the whole range. f is
+taken as determined only where a focal length wrong by the range's factor opens the gap, at one
+end at least, to ``IDENTIFIABLE_RATIO`` times its minimum plus ``GAP_RESOLUTION`` (for a general
+motion it grows from noise level to order one).
 """
 
 from __future__ import annotations
@@ -16,6 +23,9 @@ import torch
 from torch import Tensor
 
 from torchsfm.numerics import floor_tiny
+
+IDENTIFIABLE_RATIO = 2.0  # the gap at the range's worse end over its minimum, at least, where f is determined
+GAP_RESOLUTION = 1e-6  # gaps closer than this are equal: rounding of an exact essential matrix, far below a measured F's
 
 
 def intrinsics(focal: float | Tensor, principal_point: Tensor) -> Tensor:
@@ -39,14 +49,18 @@ def singular_value_gap(F: Tensor, focal: Tensor, principal_point: Tensor) -> Ten
 
 
 def focal_from_fundamentals(F: Tensor, principal_point: Tensor, prior: float, *, spread: float = 4.0,
-                            steps: int = 64, refinements: int = 30) -> float:
+                            steps: int = 64, refinements: int = 30) -> float | None:
     """The focal length (px) minimizing the median singular-value gap over the pairs F (P, 3, 3),
-    searched in [prior / spread, prior × spread] (log grid of ``steps``, then golden section)."""
+    searched in [prior / spread, prior × spread] (log grid of ``steps``, then golden section);
+    None where the pairs do not determine it (a flat gap: see the module docstring)."""
     def cost(focal: Tensor) -> Tensor:
         return singular_value_gap(F, focal, principal_point).median(dim=1).values
 
     grid = prior * torch.logspace(-math.log10(spread), math.log10(spread), steps, dtype=torch.float64, device=F.device)
-    best = int(cost(grid).argmin())
+    costs = cost(grid)
+    if float(torch.maximum(costs[0], costs[-1])) < IDENTIFIABLE_RATIO * float(costs.min()) + GAP_RESOLUTION:
+        return None
+    best = int(costs.argmin())
     low, high = math.log(float(grid[max(best - 1, 0)])), math.log(float(grid[min(best + 1, steps - 1)]))
     scalar = lambda log_focal: float(cost(torch.tensor([math.exp(log_focal)], dtype=torch.float64, device=F.device))[0])  # noqa: E731
     return math.exp(golden_section(scalar, low, high, refinements))

@@ -31,7 +31,7 @@ from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (PairMatches, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
+from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
                                      self_calibrate, verify_pairs)
 
 
@@ -154,8 +154,10 @@ class SelfCalibrate(ConfiguredStage):
             K = intrinsics(state.exif_focal, image_centre(size))
             state.report(f"focal length from EXIF: {state.exif_focal:.1f} px")
         else:
-            K = self_calibrate(state.pairs, size, self.config)
-            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(K[0, 0]):.1f} px")
+            K, determined = self_calibrate(state.pairs, size, self.config)
+            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(K[0, 0]):.1f} px" if determined else
+                         f"the {len(state.pairs)} verified pairs do not determine the focal length (a camera moving without "
+                         f"turning): the prior {float(K[0, 0]):.1f} px ({FOCAL_PRIOR} x the larger image side)")
         state.K = K.expand(len(state.images), 3, 3)
         return state
 

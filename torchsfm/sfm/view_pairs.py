@@ -184,17 +184,21 @@ def image_centre(size: tuple[int, int]) -> Tensor:
     return torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
 
 
-def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, int], config: Config) -> Tensor:
+def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, int], config: Config) -> tuple[Tensor, bool]:
     """K (3, 3) with the principal point at the image centre and the focal length that makes the
     verified pairs' essential matrices best (pairs a homography explains are left out when
-    others exist: their F does not fix the focal length)."""
+    others exist: their F does not fix the focal length), and whether the pairs determined it:
+    where they do not (a camera translating without turning, e.g. driving straight), the focal
+    length is the prior ``FOCAL_PRIOR`` × the larger image side, as in COLMAP."""
     if not pairs:
         raise DegenerateConfigurationError("no view pair could be verified, so the focal length cannot be estimated: give K")
     H, W = size
     centre = image_centre(size)
     general = [m.F for m in pairs.values() if m.homography_ratio <= config.reconstruction.max_homography_ratio]
     F = torch.stack(general or [m.F for m in pairs.values()]).double()
-    return intrinsics(focal_from_fundamentals(F, centre, FOCAL_PRIOR * max(H, W)), centre)
+    prior = FOCAL_PRIOR * max(H, W)
+    focal = focal_from_fundamentals(F, centre, prior)
+    return intrinsics(prior if focal is None else focal, centre), focal is not None
 
 
 def reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator

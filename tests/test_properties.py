@@ -220,22 +220,15 @@ def test_segment_motions(seed, frames, n, degeneracy, gaps):
         assert result.labels.shape == (n,) and int(result.labels.max()) < result.num_motions
 
 
+@pytest.mark.parametrize("entry", [torchsfm.reconstruct_tracks, torchsfm.reconstruct_motions], ids=lambda f: f.__name__)
 @CASES
 @given(**tracks_cases)
-def test_reconstruct_tracks(seed, frames, n, degeneracy, gaps):
+def test_reconstruct_tracks_and_motions(entry, seed, frames, n, degeneracy, gaps):
     tracks, visible = _tracks(seed, frames, n, degeneracy, gaps)
-    model = _call(torchsfm.reconstruct_tracks, tracks, K, visible, generator=torch.Generator().manual_seed(seed))
-    if model is not None:
-        assert model.num_views >= 2 and _finite(model.cameras.R, model.cameras.t, model.points3d)
-
-
-@CASES
-@given(**tracks_cases)
-def test_reconstruct_motions(seed, frames, n, degeneracy, gaps):
-    tracks, visible = _tracks(seed, frames, n, degeneracy, gaps)
-    result = _call(torchsfm.reconstruct_motions, tracks, K, visible, generator=torch.Generator().manual_seed(seed))
+    result = _call(entry, tracks, K, visible, generator=torch.Generator().manual_seed(seed))
     if result is not None:
-        assert all(_finite(model.cameras.R, model.cameras.t, model.points3d) for model in result.models.values())
+        models = [result] if isinstance(result, torchsfm.Reconstruction) else list(result.models.values())
+        assert all(model.num_views >= 2 and _finite(model.cameras.R, model.cameras.t, model.points3d) for model in models)
 
 
 @CASES

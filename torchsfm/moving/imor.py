@@ -108,27 +108,32 @@ def epipolar_consistency(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config |
     Raises:
         NotEnoughDataError: RANSAC finds no F for one of the pairs.
     """
-    mask, trials = _consistency([torch.stack([x0, x1, x2])], config or Config(), generator)[0]
-    return mask, trials
+    found = _consistency([torch.stack([x0, x1, x2])], config or Config(), generator)[0]
+    if isinstance(found, str):
+        raise NotEnoughDataError(found)
+    return found
 
 
-def _consistency(triplets: list[Tensor], config: Config, generator: torch.Generator | None) -> list[tuple[Tensor | None, int]]:
-    """:func:`epipolar_consistency` of T triplets (3, N_t, 2) as one call on their 3T pairs; per
-    triplet its mask (None where RANSAC found no F for one of its pairs) and samples drawn. One
-    triplet raises where it has no F, as :func:`~torchsfm.estimators.estimate_fundamental` does."""
+def _consistency(triplets: list[Tensor], config: Config, generator: torch.Generator | None) -> list[tuple[Tensor, int] | str]:
+    """:func:`epipolar_consistency` of T triplets (3, N_t, 2) as one call on their 3T pairs
+    (one triplet unpadded: the draws of a call of its own); per triplet its mask and samples
+    drawn, or why RANSAC found no F for one of its pairs."""
     config = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, refine=False))
     first = [frames[i] for frames in triplets for i in (1, 1, 0)]
     second = [frames[j] for frames in triplets for j in (0, 2, 2)]
     if len(triplets) == 1:
-        found = estimate_fundamental(torch.stack(first), torch.stack(second), config=config, generator=generator)
+        try:
+            found = estimate_fundamental(torch.stack(first), torch.stack(second), config=config, generator=generator)
+        except NotEnoughDataError as error:
+            return [str(error)]
         return [(found.inlier_mask.all(0), int(found.num_trials.sum()))]
     data, valid = pad_rows([torch.cat(pair, -1) for pair in zip(first, second)])
     found = estimate_fundamental(data[..., :2], data[..., 2:], valid=valid, config=config, generator=generator)
     results = []
     for t, frames in enumerate(triplets):
         rows = slice(3 * t, 3 * t + 3)
-        mask = found.inlier_mask[rows, : frames.shape[1]].all(0) if bool(found.success[rows].all()) else None
-        results.append((mask, int(found.num_trials[rows].sum())))
+        results.append((found.inlier_mask[rows, : frames.shape[1]].all(0), int(found.num_trials[rows].sum()))
+                       if bool(found.success[rows].all()) else "RANSAC found no fundamental matrix with at least 8 inliers")
     return results
 
 
@@ -193,11 +198,14 @@ def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config 
         ShapeError, InputError: malformed or mismatched input. NotEnoughDataError: fewer than 12
         vectors, or RANSAC finds no fundamental matrix.
     """
-    return reject_moving_objects_in_triplets([check_frames(x0, x1, x2)], config=config, generator=generator)[0]
+    result = reject_moving_objects_in_triplets([check_frames(x0, x1, x2)], config=config, generator=generator)[0]
+    if isinstance(result, str):
+        raise NotEnoughDataError(result)
+    return result
 
 
 def reject_moving_objects_in_triplets(triplets: list[Tensor], *, config: Config | None = None,
-                                      generator: torch.Generator | None = None) -> list[MovingObjectRejection | None]:
+                                      generator: torch.Generator | None = None) -> list[MovingObjectRejection | str]:
     """:func:`reject_moving_objects` of T triplets at once: the plane RANSACs of all of them run
     as one ragged call, and so do the cascade's F RANSACs (one call per round size); the seed,
     supports and votes are chosen per triplet.
@@ -207,8 +215,7 @@ def reject_moving_objects_in_triplets(triplets: list[Tensor], *, config: Config 
         config, generator: as for :func:`reject_moving_objects`.
 
     Returns:
-        Per triplet its :class:`MovingObjectRejection`, or None where RANSAC found no F (a
-        single triplet raises NotEnoughDataError instead).
+        Per triplet its :class:`MovingObjectRejection`, or why it has none (RANSAC found no F).
     """
     config = config or Config()
     settings = config.moving_objects
@@ -224,7 +231,7 @@ def reject_moving_objects_in_triplets(triplets: list[Tensor], *, config: Config 
     for t, outcome in enumerate(outcomes):
         if settings.ransac or outcome.fallback is not None:
             cascades.setdefault(outcome.fallback is None, []).append(t)
-    consistency: dict[int, tuple[Tensor | None, int]] = {}
+    consistency: dict[int, tuple[Tensor, int] | str] = {}
     for small_rounds, members in cascades.items():
         cascade = config
         if small_rounds:
@@ -235,15 +242,15 @@ def reject_moving_objects_in_triplets(triplets: list[Tensor], *, config: Config 
     return [_result(outcome, consistency.get(t)) for t, outcome in enumerate(outcomes)]
 
 
-def _result(outcome: _Outcome, consistency: tuple[Tensor | None, int] | None) -> MovingObjectRejection | None:
+def _result(outcome: _Outcome, consistency: tuple[Tensor, int] | str | None) -> MovingObjectRejection | str:
     """The rejection of one triplet from IMOR's outcome and the cascade's F inliers among IMOR's
-    background (None: no cascade), or None where the cascade found no F."""
+    background (None: no cascade), or why the cascade found no F."""
+    if isinstance(consistency, str):
+        return consistency
     imor = outcome.background
     ransac_mask, trials, background = None, 0, imor
     if consistency is not None:
         consistent, trials = consistency
-        if consistent is None:
-            return None
         ransac_mask = torch.zeros_like(imor)
         ransac_mask[imor] = consistent
         background = imor & ransac_mask

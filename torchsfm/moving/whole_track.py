@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import Config
-from torchsfm.errors import NotEnoughDataError, ShapeError, TorchSfmError
+from torchsfm.errors import ShapeError, TorchSfmError
 from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects_in_triplets
 from torchsfm.moving.segmentation import MotionSegmentation, grid_coverage, segment_motions
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group
@@ -141,16 +141,13 @@ def _triplet_votes(tracks: Tensor, visible: Tensor, triplets: list[tuple[int, in
     N = tracks.shape[1]
     seen = torch.stack([visible[list(triplet)].all(0) for triplet in triplets]) if triplets else visible[:0]  # (T, N)
     usable = [t for t in range(len(triplets)) if int(seen[t].sum()) >= MIN_VECTORS]
-    try:
-        found = reject_moving_objects_in_triplets([tracks[list(triplets[t])][:, seen[t]] for t in usable], config=config,
-                                                  generator=generator) if usable else []
-    except NotEnoughDataError:  # the one usable triplet has no F (several report None instead): no vote
-        found = [None]
+    found = reject_moving_objects_in_triplets([tracks[list(triplets[t])][:, seen[t]] for t in usable], config=config,
+                                              generator=generator) if usable else []
     rejected = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     tested = torch.zeros(N, dtype=torch.float64, device=tracks.device)
     tested_triplets, results = [], []
     for t, result in zip(usable, found):
-        if result is None:  # RANSAC found no F on this triplet: it casts no vote
+        if isinstance(result, str):  # RANSAC found no F on this triplet: it casts no vote
             continue
         tested_triplets.append(tuple(triplets[t]))
         results.append(result)

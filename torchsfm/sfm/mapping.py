@@ -236,7 +236,7 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
 
 
 def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Generator,
-           threshold: float | None = None) -> tuple[AbsolutePose, float] | str:
+           first: AbsolutePose | None = None) -> tuple[AbsolutePose, float] | str:
     """The pose of a new view from its tracks' points X (N, 3) and pixels x (N, 2) and the
     threshold (px) it needed, or why there is none.
 
@@ -245,17 +245,20 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
     pose, many of them reproject several pixels off. A resection that keeps fewer than
     ``min_resection_inliers`` is therefore tried again at double the threshold, up to
     ``max_resection_threshold`` px (chance agreement stays negligible: 20 wrong pairs within 8 px
-    of one pose do not happen), and the bundle adjustments restore the precision. ``threshold``:
-    where the ladder starts (default: the RANSAC threshold)."""
+    of one pose do not happen), and the bundle adjustments restore the precision. ``first``: the
+    resection at the RANSAC threshold when it is already done (:func:`resect_views`)."""
     settings, needed = config.resection, config.reconstruction.min_resection_inliers
-    threshold = threshold or settings.ransac.inlier_threshold
+    threshold = settings.ransac.inlier_threshold
     while True:
-        trial = dataclasses.replace(config, resection=dataclasses.replace(
-            settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=threshold)))
-        try:
-            pose = estimate_absolute_pose(X, x, K, config=trial, generator=generator)
-        except TorchSfmError as error:
-            return f"resection failed: {error}"
+        if first is not None:
+            pose, first = first, None
+        else:
+            trial = dataclasses.replace(config, resection=dataclasses.replace(
+                settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=threshold)))
+            try:
+                pose = estimate_absolute_pose(X, x, K, config=trial, generator=generator)
+            except TorchSfmError as error:
+                return f"resection failed: {error}"
         kept = int(pose.inlier_mask.sum())
         if kept >= needed:
             return pose, threshold
@@ -269,23 +272,16 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
     """:func:`resect` of several views from the model's points as it stands: the first rung of
     every view in one ragged call; a view that keeps too few inliers there climbs the rest of
     its threshold ladder on its own."""
-    tracks, needed = model.tracks, config.reconstruction.min_resection_inliers
+    tracks = model.tracks
     rows = [(tracks.view == view) & model.has_point[tracks.track] for view in views]
     if len(views) == 1:
         return [resect(model.points[tracks.track[rows[0]]], model.pixels[rows[0]], model.K[views[0]], config, generator)]
     data, valid = pad_rows([torch.cat([model.points[tracks.track[mine]], model.pixels[mine]], -1) for mine in rows])
     poses = estimate_absolute_pose(data[..., :3], data[..., 3:], model.K[views], valid=valid, config=config, generator=generator)
-    threshold = config.resection.ransac.inlier_threshold
-    found = []
-    for b, (view, mine) in enumerate(zip(views, rows)):
-        if bool(poses.success[b]) and int(poses.inlier_mask[b].sum()) >= needed:
-            found.append((AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : int(mine.sum())],
-                                       num_trials=poses.num_trials[b], success=poses.success[b]), threshold))
-        elif 2 * threshold > config.reconstruction.max_resection_threshold:
-            found.append(f"resection kept {int(poses.inlier_mask[b].sum())} inliers within {threshold:g} px (needs {needed})")
-        else:
-            found.append(resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, generator, 2 * threshold))
-    return found
+    return [resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, generator,
+                   first=AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : int(mine.sum())],
+                                      num_trials=poses.num_trials[b], success=poses.success[b]))
+            for b, (view, mine) in enumerate(zip(views, rows))]
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:

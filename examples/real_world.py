@@ -9,7 +9,8 @@ frames shuffled; and, where
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
 maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
-and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping).
+and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping; with
+``--no-K`` its own default: one focal length from its prior, refined, the principal point at the centre).
 
     python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap] [--set KEY=VALUE]
 """
@@ -85,7 +86,7 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
     return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}, {seconds:.1f} s"
 
 
-def run_pycolmap(sequence: StrechaSequence, workdir: Path) -> str:
+def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
     os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's progress log
     try:
         import pycolmap
@@ -102,14 +103,17 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path) -> str:
     start = time.perf_counter()
     database = workdir / "database.db"
     options = pycolmap.ImageReaderOptions()
-    options.camera_model = "PINHOLE"
-    options.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    mapping = pycolmap.IncrementalPipelineOptions()
+    if with_K:
+        options.camera_model = "PINHOLE"
+        options.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        mapping.ba_refine_focal_length = False
+        mapping.ba_refine_principal_point = False
+    else:  # COLMAP's own way without K: one focal length from its prior, refined; principal point at the centre
+        options.camera_model = "SIMPLE_PINHOLE"
+    mapping.ba_refine_extra_params = False
     pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=options)
     pycolmap.match_exhaustive(database)
-    mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.ba_refine_focal_length = False
-    mapping.ba_refine_principal_point = False
-    mapping.ba_refine_extra_params = False
     models = pycolmap.incremental_mapping(database, images, workdir / "sparse", options=mapping)
     seconds = time.perf_counter() - start
     if not models:
@@ -124,7 +128,8 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path) -> str:
     order = sorted(range(len(index)), key=lambda k: index[k])
     index = [index[k] for k in order]
     R, t = torch.stack([R[k] for k in order]).double(), torch.stack([t[k] for k in order]).double()
-    return f"{len(index)}/{len(sequence.images)} views, {errors_row(R, t, sequence, index)}, {seconds:.1f} s"
+    focal = "" if with_K else f", focal {next(iter(model.cameras.values())).params[0]:.1f}"
+    return f"{len(index)}/{len(sequence.images)} views, {errors_row(R, t, sequence, index)}{focal}, {seconds:.1f} s"
 
 
 def main() -> None:
@@ -144,7 +149,7 @@ def main() -> None:
         print(f"{name} ({len(sequence.images)} images)")
         print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config)}", flush=True)
         if not args.no_colmap:
-            print(f"  pycolmap: {run_pycolmap(sequence, args.work / name)}", flush=True)
+            print(f"  pycolmap{' (no K)' if args.no_K else ''}: {run_pycolmap(sequence, args.work / name, not args.no_K)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -215,3 +215,21 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     pairs = frame_pairs(short)
     assert median_span(short) == 2 and median_span(full) == 9
     assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28
+
+
+def test_preference_counts_and_similarity_are_exact():
+    """The int8 products of 0/1 preference matrices equal float64 ones, so the Tanimoto
+    similarity equals its definition |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
+    from torchsfm.moving.segmentation import binary_products, tanimoto_similarity
+
+    g = torch.Generator().manual_seed(3)
+    defined = torch.rand(37, 301, generator=g) < 0.8
+    preference = (torch.rand(37, 301, generator=g) < 0.3) & defined
+    exact = preference.double() @ defined.double().T
+    torch.testing.assert_close(binary_products(preference.double(), defined.double()).double(), exact, rtol=0, atol=0)
+    similarity = tanimoto_similarity(preference.double(), defined.double())
+    both = defined[:, None] & defined[None]  # (37, 37, 301)
+    p_i, p_j = preference[:, None] & both, preference[None] & both
+    union = (p_i | p_j).sum(-1).double()
+    expected = torch.where(union > 0, (p_i & p_j).sum(-1).double() / union.clamp_min(1), 0.0).fill_diagonal_(0.0)
+    torch.testing.assert_close(similarity, expected, rtol=1e-6, atol=0)

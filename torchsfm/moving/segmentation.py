@@ -367,7 +367,7 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
         for part in rows.split(chunk):
             h = part // a.shape[1]
             residual = distance(models.reshape(-1, 3, 3)[part], tracks[i], tracks[j])
-            worst[h] = torch.where(both, torch.maximum(worst[h], residual), worst[h])
+            worst[h] = torch.maximum(worst[h], torch.where(both, residual, 0.0))  # residuals are >= 0 (or NaN)
             pairs_seen[h] += both
     defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
     return worst, defined.scatter(1, sample, False)
@@ -436,14 +436,21 @@ def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
 
 def tanimoto_similarity(preference: Tensor, mask: Tensor) -> Tensor:
     """(N, H) preferences and defined mask -> (N, N) Tanimoto similarity over the hypotheses
-    defined for both tracks (zero diagonal). The counts are products of 0/1 matrices, exact in
-    float32 (up to 2^24 hypotheses), which halves the cost of the two products."""
-    preference32 = preference.float()
-    inner = preference32 @ preference32.T
-    own = preference32 @ mask.float().T  # |p_i| restricted to the hypotheses defined for j
+    defined for both tracks (zero diagonal)."""
+    inner = binary_products(preference, preference)
+    own = binary_products(preference, mask)  # |p_i| restricted to the hypotheses defined for j
     denominator = own + own.T - inner
     similarity = torch.where(denominator > 0, inner / denominator.clamp_min(1.0), 0.0).to(preference.dtype)
     return similarity.fill_diagonal_(0.0)
+
+
+def binary_products(a: Tensor, b: Tensor) -> Tensor:
+    """(n, h) and (m, h) 0/1 matrices -> (n, m) float32 counts a @ b.T, exact (up to 2^24). On
+    the CPU in int8 with int32 sums (``torch._int_mm``: 5x faster than float32 on a CPU with
+    VNNI); elsewhere in float32."""
+    if a.device.type == "cpu":
+        return torch._int_mm(a.to(torch.int8), b.to(torch.int8).T).float()
+    return a.float() @ b.float().T
 
 
 def strongest_links(similarity: Tensor, links: int) -> Tensor:

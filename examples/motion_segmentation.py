@@ -18,10 +18,13 @@ Hopkins155 — SSC 2.2 % mean (Elhamifar & Vidal, TPAMI 2013), LRR 1.6 % (Liu et
 MSMC 0.3–0.8 % (Xu, Cheong & Li, CVPR 2018); KT3DMoSeg — MSMC 8–10 % (Xu et al., 2018), SSC
 21–26 %; AdelaideRMF F — RPA 10 %, T-linkage 9–10 % (Magri & Fusiello, 2015–2016).
 
+The figures depend on the random hypotheses: ``--seeds N`` runs N seeds and reports means over
+them (per sequence, pooled, and the pooled mean of each seed with their spread).
+
 With ``--png DIR``, a picture per sequence of its tracks coloured by the labels found
 (``torchsfm.visualization.segmentation_figure``; the static scene grey, unassigned black).
 
-    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR] [--seed 0] [--set KEY=VALUE ...]
+    python examples/motion_segmentation.py [--data ../shared/data] [--png DIR] [--seed 0] [--seeds 1] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -91,40 +94,54 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--png", type=Path, default=None, help="write a picture of each segmentation here")
     parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (the figures vary with it)")
+    parser.add_argument("--seeds", type=int, default=1, help="run seeds seed .. seed + seeds - 1; figures are means over them")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="config overrides, e.g. segmentation.models=fundamental,affine,homography")
     args = parser.parse_args()
     config = with_overrides(Config(), args.set).segmentation
-    table: dict[str, list[tuple[float, float, float | None, bool]]] = {}
+    seeds = range(args.seed, args.seed + args.seeds)
+    table: dict[str, list[tuple[list[float], list[float], float | None, list[bool]]]] = {}
     print(f"{'data set':14s} {'sequence':16s} {'F':>3s} {'N':>5s} {'k':>2s} {'found':>5s} "
           f"{'found %':>8s} {'given %':>8s} {'OpenCV %':>9s} {'s':>6s}")
     for name, sequence in sequences(args.data):
         truth = sequence.labels
         motions = int(truth.max()) + 1
-        generator = torch.Generator().manual_seed(args.seed)
-        start = time.perf_counter()
-        found = segment_motions(sequence.tracks, sequence.visible, config=config, generator=generator)
-        seconds = time.perf_counter() - start
-        given = segment_motions(sequence.tracks, sequence.visible, config=config, num_motions=motions,
-                                generator=torch.Generator().manual_seed(args.seed))
+        found_errors, given_errors, counts, seconds = [], [], [], 0.0
+        for seed in seeds:
+            start = time.perf_counter()
+            found = segment_motions(sequence.tracks, sequence.visible, config=config,
+                                    generator=torch.Generator().manual_seed(seed))
+            seconds += time.perf_counter() - start
+            given = segment_motions(sequence.tracks, sequence.visible, config=config, num_motions=motions,
+                                    generator=torch.Generator().manual_seed(seed))
+            found_errors.append(100 * misclassification(found.labels, truth))
+            given_errors.append(100 * misclassification(given.labels, truth))
+            counts.append(found.num_motions)
+            if args.png is not None and seed == args.seed:
+                picture = segmentation_figure(sequence.tracks, sequence.visible, found.labels, sequence.image_size)
+                write_png(args.png / f"{sequence.name}.png", picture)
         baseline = opencv_sequential_ransac(sequence, motions)
-        if args.png is not None:
-            picture = segmentation_figure(sequence.tracks, sequence.visible, found.labels, sequence.image_size)
-            write_png(args.png / f"{sequence.name}.png", picture)
-        row = (misclassification(found.labels, truth), misclassification(given.labels, truth),
-               None if baseline is None else misclassification(baseline, truth), found.num_motions == motions)
-        table.setdefault(name, []).append(row)
-        opencv = "n/a" if row[2] is None else f"{100 * row[2]:.1f}"
+        opencv = None if baseline is None else 100 * misclassification(baseline, truth)
+        table.setdefault(name, []).append((found_errors, given_errors, opencv, [c == motions for c in counts]))
+        found_count = str(counts[0]) if min(counts) == max(counts) else f"{min(counts)}-{max(counts)}"
         print(f"{name:14s} {sequence.name:16s} {sequence.tracks.shape[0]:3d} {truth.numel():5d} {motions:2d} "
-              f"{found.num_motions:5d} {100 * row[0]:8.1f} {100 * row[1]:8.1f} {opencv:>9s} {seconds:6.2f}", flush=True)
-    print("\npooled: mean / median / worst misclassification %, motions found right")
+              f"{found_count:>5s} {statistics.mean(found_errors):8.1f} {statistics.mean(given_errors):8.1f} "
+              f"{'n/a' if opencv is None else f'{opencv:.1f}':>9s} {seconds / len(seeds):6.2f}", flush=True)
+    print(f"\npooled over the sequences: mean / median / worst misclassification % (means over {len(seeds)} seed(s)), "
+          "motions found right")
     for name, rows in table.items():
         for column, label in ((0, "found"), (1, "given"), (2, "OpenCV")):
-            values = [100 * row[column] for row in rows if row[column] is not None]
+            values = [row[column] if column == 2 else statistics.mean(row[column]) for row in rows]
+            values = [value for value in values if value is not None]
             if values:
                 print(f"{name:14s} {label:7s} {statistics.mean(values):6.2f} / {statistics.median(values):6.2f} / "
                       f"{max(values):6.2f}")
-        print(f"{name:14s} number of motions right in {sum(row[3] for row in rows)} of {len(rows)}")
+        right = sum(sum(row[3]) for row in rows)
+        print(f"{name:14s} number of motions right in {right} of {len(rows) * len(seeds)} runs")
+        if len(seeds) > 1:
+            per_seed = [statistics.mean(row[0][k] for row in rows) for k in range(len(seeds))]
+            print(f"{name:14s} found, mean of each seed: " + " ".join(f"{value:.2f}" for value in per_seed)
+                  + f" (sd {statistics.stdev(per_seed):.2f})")
 
 
 if __name__ == "__main__":

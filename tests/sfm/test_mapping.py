@@ -102,3 +102,25 @@ def test_the_parallax_screen_measures_the_triangulation_angle_from_F():
     angles = parallax_angles(matches, [(0, 1), (1, 0)], [scene.x1_true, scene.x2_true], torch.stack([scene.K1, scene.K2]))
     truth = triangulation_angle(scene.points3d, torch.zeros(3, dtype=torch.float64), -scene.R.T @ scene.t).median()
     assert_close(angles, truth.expand(2), rtol=0, atol=1e-6)
+
+
+def test_a_view_with_too_few_points_is_posed_from_its_verified_pair_and_scaled_by_them():
+    """View 2 sees only 5 of the model's points (too few to resect) but has a verified pair
+    with view 1 over every point: its pose comes from the pair's relative pose, the length of
+    the translation from those 5 points — exactly, on noise-free pixels. With the 5 points moved
+    the pose is refused and the reason says how many agree."""
+    from torchsfm.sfm.mapping import pose_from_pair
+    from torchsfm.sfm.view_pairs import PairMatches
+
+    R, t, points, state, config = sequence(num_views=3)
+    state.registered[2] = False
+    state.has_point[5:] = False  # view 2 sees 5 reconstructed points
+    everything = torch.arange(points.shape[0])
+    pairs = {(1, 2): PairMatches(index1=everything, index2=everything, homography_ratio=0.0, F=torch.eye(3, dtype=torch.float64))}
+    R2, t2, done = pose_from_pair(state, pairs, 2, config, torch.Generator().manual_seed(0))
+    assert_close(R2, R[2], rtol=0, atol=1e-9)
+    assert_close(t2, t[2], rtol=0, atol=1e-9)
+    assert "pair with view 1" in done and "5 of its 5" in done
+    state.points[:5] += torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64) * torch.arange(1, 6)[:, None]  # each off by another amount
+    assert "agrees with only" in pose_from_pair(state, pairs, 2, config, torch.Generator().manual_seed(0))
+    assert pose_from_pair(state, {}, 2, config, torch.Generator().manual_seed(0)) == "no verified pair with a registered view"

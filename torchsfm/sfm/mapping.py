@@ -27,6 +27,7 @@ from torchsfm.numerics import floor_tiny
 
 MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
 MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
+PAIR_POSE_MIN_POINTS = 3  # a length along one ray needs one point; three that agree, and a majority, make it robust
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 RESECTION_SHARE = 0.75  # the views that see this share of the best view's points are resected together (OpenMVG's rule)
@@ -284,6 +285,47 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
             for b, (view, mine) in enumerate(zip(views, rows))]
 
 
+def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches], view: int, config: Config,
+                   generator: torch.Generator) -> tuple[Tensor, Tensor, str] | str:
+    """The pose of ``view`` — one that sees too few reconstructed points to be resected — from
+    its verified pair with most matches among the registered views: the pair's relative pose
+    (:func:`estimate_relative_pose` on its matches: the rotation and the direction of travel from
+    hundreds of matches, where a wide baseline left few tracks that reach the model), its
+    translation's length from the reconstructed points ``view`` sees (each fixes one along its
+    ray; their median). The pose stands if most of those points, and at least
+    ``PAIR_POSE_MIN_POINTS``, reproject within the resection threshold. Returns (R (3, 3),
+    t (3,), what was done) or why not."""
+    partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
+    if not partners:
+        return "no verified pair with a registered view"
+    (i, j), match = max(partners, key=lambda item: item[1].index1.numel())
+    other = i + j - view
+    try:
+        pose = estimate_relative_pose(model.corners[i][match.index1], model.corners[j][match.index2], model.K[i], model.K[j],
+                                      config=config, generator=generator)  # camera j = R camera i + t
+    except TorchSfmError as error:
+        return f"its pair with view {other}: {error}"
+    R, t = (pose.R, pose.t) if i == other else (pose.R.T, -pose.R.T @ pose.t)  # camera view = R camera other + t
+    tracks = model.tracks
+    rows = (tracks.view == view) & model.has_point[tracks.track]
+    X = model.points[tracks.track[rows]]
+    ray = to_homogeneous(pixels_to_normalized(model.pixels[rows], model.K[view]))  # (n, 3)
+    fixed = (X @ model.R[other].T + model.t[other]) @ R.T  # camera view = fixed + s t
+    across_fixed, across_t = torch.linalg.cross(ray, fixed), torch.linalg.cross(ray, t.expand_as(ray))
+    scales = -(across_fixed * across_t).sum(-1) / floor_tiny(across_t.square().sum(-1))
+    if scales.numel() == 0:
+        return f"it sees no reconstructed point to scale its pair with view {other}"
+    R_view, t_view = R @ model.R[other], R @ model.t[other] + scales.median() * t
+    camera = Camera(model.K[view], R_view, t_view)
+    depth = camera.world_to_camera(X[None])[0, :, 2]
+    error = (camera.project(X[None])[0] - model.pixels[rows]).norm(dim=-1)
+    agree = int(((depth > 0) & (error < config.resection.ransac.inlier_threshold)).sum())
+    if agree < PAIR_POSE_MIN_POINTS or 2 * agree <= scales.numel():
+        return f"its pair with view {other} agrees with only {agree} of the {scales.numel()} reconstructed points it sees"
+    return R_view, t_view, (f"view {view} posed from its verified pair with view {other} ({match.index1.numel()} matches), "
+                            f"scaled by the {agree} of its {scales.numel()} reconstructed points that agree")
+
+
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
     """The K shared by every view — fx, fy, cx, cy — adjusted jointly with the cameras and points
     (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``), in place. A result
@@ -346,7 +388,8 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     """One model over the ``allowed`` (V,) views: the initial pair among them, then repeatedly the
     views that see most reconstructed tracks — every view that sees ``RESECTION_SHARE`` of the
     best one's count, resected together (:func:`resect_views`) and registered most first (a view
-    that fails is retried after the next registration) — then bundle adjustment,
+    that fails is retried after the next registration; when no view sees enough points, one with
+    a verified pair into the model is posed from it, :func:`pose_from_pair`) — then bundle adjustment,
     retriangulation, outlier removal and, when K was estimated, its refinement. Returns the
     model and, for every allowed view left out, the reason."""
     tracks, V = state.tracks, len(state.corners)
@@ -382,10 +425,25 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
             break
         seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
         most = int(torch.where(waiting, seen, -1).max())
-        if most < config.reconstruction.min_resection_inliers:
-            for v in torch.nonzero(waiting).flatten().tolist():
-                unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers})"
-            break
+        if most < config.reconstruction.min_resection_inliers:  # too few points to resect: a verified pair may pose one
+            stuck = torch.nonzero(waiting).flatten()
+            posed = None
+            for v in stuck[torch.argsort(seen[stuck], descending=True, stable=True)].tolist():
+                outcome = timed("pose from a pair", lambda: pose_from_pair(model, pairs, v, config, state.generator))
+                if not isinstance(outcome, str):
+                    posed = v
+                    break
+                unregistered[v] = f"sees only {int(seen[v])} reconstructed points (needs {config.reconstruction.min_resection_inliers}); {outcome}"
+            if posed is None:
+                break
+            model.R[posed], model.t[posed], done = outcome
+            model.registered[posed] = True
+            order.append(posed)
+            state.report(done)
+            timed("triangulation", lambda: model.triangulate_new(posed))
+            timed("bundle adjustment", lambda: bundle(model, config, first))
+            unregistered.clear()
+            continue
         # the views that see nearly as many points as the best one, most first: resected together
         share = max(config.reconstruction.min_resection_inliers, math.ceil(RESECTION_SHARE * most))
         candidates = torch.nonzero(waiting & (seen >= share)).flatten()

@@ -23,7 +23,6 @@ import os
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 import torchsfm
@@ -31,7 +30,7 @@ from torchsfm.camera import decompose_projection
 from torchsfm.config import with_overrides
 from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors
-from torchsfm.io.datasets import StrechaSequence, read_kitti_odometry, read_strecha
+from torchsfm.io.datasets import StrechaSequence, read_kitti_odometry, read_oxford_multiview, read_strecha
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -43,9 +42,9 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 def read_merton(folder: Path) -> StrechaSequence:
     """Oxford VGG Merton College I: three 1024x768 photos; K, R, t from the set's P matrices
     (their K differ by up to 3.5 % between views: the cameras come from a reconstruction)."""
-    P = torch.stack([torch.tensor(np.loadtxt(folder / "2D" / f"00{v}.P")) for v in (1, 2, 3)])
-    K, R, t = decompose_projection(P)
-    return StrechaSequence(images=[folder / "images" / f"00{v}.jpg" for v in (1, 2, 3)], K=K, R=R, t=t)
+    dataset = read_oxford_multiview(folder)
+    K, R, t = decompose_projection(dataset.P)
+    return StrechaSequence(images=dataset.images, K=K, R=R, t=t)
 
 
 def cases(data: Path) -> dict[str, StrechaSequence]:

@@ -233,3 +233,18 @@ def test_preference_counts_and_similarity_are_exact():
     union = (p_i | p_j).sum(-1).double()
     expected = torch.where(union > 0, (p_i & p_j).sum(-1).double() / union.clamp_min(1), 0.0).fill_diagonal_(0.0)
     torch.testing.assert_close(similarity, expected, rtol=1e-6, atol=0)
+
+
+def test_a_piece_of_the_scene_that_its_motion_explains_rejoins_it():
+    """The static scene split in two (a third of its tracks labelled as a motion of their own)
+    and two moving objects: the split-off piece rejoins the scene, the objects stay apart."""
+    from torchsfm.moving.segmentation import frame_pairs, join_explained
+
+    data = scene(4, 2)
+    labels = data.labels.clone()  # 0 scene, 1 and 2 objects, -1 outliers
+    scene_tracks = torch.nonzero(labels == 0)[:, 0]
+    labels[scene_tracks[::3]] = 3
+    joined = join_explained(data.tracks, torch.ones(data.tracks.shape[:2], dtype=torch.bool), labels,
+                            frame_pairs(torch.ones(data.tracks.shape[:2], dtype=torch.bool)), SegmentationConfig(),
+                            torch.Generator().manual_seed(0))
+    assert torch.equal(joined, data.labels)

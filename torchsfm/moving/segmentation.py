@@ -236,7 +236,8 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     :func:`merge_clusters` over their own links and labelled after the other motions — those a
     rigid motion of their own explains (median RMS Sampson distance within
     ``config.scene_tolerance``, :func:`motion_residuals`); the others are outliers (-1).
-    Nothing is cut when fewer than 12 scene tracks would remain.
+    Nothing is cut when fewer than 12 scene tracks would remain. When pieces were cut, the scene
+    as it now stands judges every motion once more (:func:`join_explained`).
 
     Args:
         tracks: (F, N, 2) pixels; visible: (F, N) bool.
@@ -268,6 +269,21 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     members[bodies, clustered[position]] = True
     rigid = motion_residuals(tracks, visible, members, pairs) <= config.scene_tolerance
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
+    return join_explained(tracks, visible, labels, pairs, config, generator)
+
+
+def join_explained(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,
+                   generator: torch.Generator) -> Tensor:
+    """(N,) labels with every motion that the scene's rigid motion explains (median
+    :func:`scene_excess` at most 1) joined to the scene (label 0), renumbered. The scene that
+    judged the cut pieces still held them; without them its fit can explain a piece after all."""
+    excess = scene_excess(tracks, visible, labels == 0, pairs, config, generator)
+    motions = range(1, int(labels.max()) + 1)
+    joined = [motion for motion in motions if bool(excess[labels == motion].nanmedian() <= 1)]
+    if not joined:
+        return labels
+    labels = torch.where(torch.isin(labels, torch.tensor(joined, device=labels.device)), 0, labels)
+    _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
     return labels
 
 

@@ -238,13 +238,14 @@ def test_preference_counts_and_similarity_are_exact():
 def test_a_piece_of_the_scene_that_its_motion_explains_rejoins_it():
     """The static scene split in two (a third of its tracks labelled as a motion of their own)
     and two moving objects: the split-off piece rejoins the scene, the objects stay apart."""
-    from torchsfm.moving.segmentation import frame_pairs, join_explained
+    from torchsfm.moving.segmentation import frame_pairs, join_explained, scene_excess
 
     data = scene(4, 2)
     labels = data.labels.clone()  # 0 scene, 1 and 2 objects, -1 outliers
     scene_tracks = torch.nonzero(labels == 0)[:, 0]
     labels[scene_tracks[::3]] = 3
-    joined = join_explained(data.tracks, torch.ones(data.tracks.shape[:2], dtype=torch.bool), labels,
-                            frame_pairs(torch.ones(data.tracks.shape[:2], dtype=torch.bool)), SegmentationConfig(),
-                            torch.Generator().manual_seed(0))
+    visible = torch.ones(data.tracks.shape[:2], dtype=torch.bool)
+    excess = scene_excess(data.tracks, visible, labels == 0, frame_pairs(visible), SegmentationConfig(),
+                          torch.Generator().manual_seed(0))
+    joined = join_explained(labels, excess)
     assert torch.equal(joined, data.labels)

@@ -251,11 +251,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     scene = labels == 0
     pairs = frame_pairs(visible)
     excess = scene_excess(tracks, visible, scene, pairs, config, generator)
-    labels = labels.clone()
-    for motion in range(1, int(labels.max()) + 1):
-        if excess[labels == motion].nanmedian() <= 1:
-            labels[labels == motion] = 0
-    _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
+    labels = join_explained(labels, excess)
     scene = labels == 0
     scene_pieces = pieces[scene].unique()
     inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
@@ -269,20 +265,16 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     members[bodies, clustered[position]] = True
     rigid = motion_residuals(tracks, visible, members, pairs) <= config.scene_tolerance
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
-    return join_explained(tracks, visible, labels, pairs, config, generator)
+    # the scene that judged the cut pieces still held them: without them its fit may explain one after all
+    return join_explained(labels, scene_excess(tracks, visible, labels == 0, pairs, config, generator))
 
 
-def join_explained(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,
-                   generator: torch.Generator) -> Tensor:
-    """(N,) labels with every motion that the scene's rigid motion explains (median
-    :func:`scene_excess` at most 1) joined to the scene (label 0), renumbered. The scene that
-    judged the cut pieces still held them; without them its fit can explain a piece after all."""
-    excess = scene_excess(tracks, visible, labels == 0, pairs, config, generator)
-    motions = range(1, int(labels.max()) + 1)
-    joined = [motion for motion in motions if bool(excess[labels == motion].nanmedian() <= 1)]
-    if not joined:
-        return labels
-    labels = torch.where(torch.isin(labels, torch.tensor(joined, device=labels.device)), 0, labels)
+def join_explained(labels: Tensor, excess: Tensor) -> Tensor:
+    """(N,) labels with every motion that the scene's rigid motion explains (median (N,)
+    :func:`scene_excess` at most 1) joined to the scene (label 0), renumbered."""
+    joined = torch.tensor([motion for motion in range(1, int(labels.max()) + 1) if bool(excess[labels == motion].nanmedian() <= 1)],
+                          dtype=labels.dtype, device=labels.device)
+    labels = torch.where(torch.isin(labels, joined), 0, labels)  # a new tensor: the caller's labels stay as they were
     _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
     return labels
 

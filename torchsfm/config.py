@@ -348,7 +348,9 @@ class PairsConfig:
     affine map, so rotation, scale and foreshortening between the views are undone.
     ``epipolar_matching``: when views stay unregistered, their verified pairs are matched again
     with the epipolar band (Sampson distance within the F inlier threshold) in place of the disc,
-    and the mapping runs again.
+    and the mapping runs again. ``sift_bridge``: when views are still left out, the pairs that
+    may link them to the model take their homography from SIFT matches instead of the coarse
+    NCC ones (wide baselines), are matched and verified as above, and the mapping runs again.
     ``matcher``: ``ncc`` (the thesis' Harris corners and NCC + strength measure, above) or
     ``sift`` (Kornia's SIFT: ``sift_features`` scale-space keypoints per view, RootSIFT
     descriptors, mutual nearest neighbours passing Lowe's ratio test at ``sift_ratio``; the same
@@ -368,6 +370,7 @@ class PairsConfig:
     guided: bool = True
     warp_patches: bool = True
     epipolar_matching: bool = True
+    sift_bridge: bool = True
     matcher: Matcher = "ncc"
     sift_features: int = 4000
     sift_ratio: float = 0.8

@@ -16,9 +16,9 @@ from torchsfm.errors import ConfigError
 from torchsfm.images import read_image
 from torchsfm.sfm.from_tracks import ReconstructObjects
 from torchsfm.pipeline import ConfiguredStage
-from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline
+from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline, joining_pairs
 from torchsfm.sfm.two_view import PairState, TwoViewReconstruction
-from torchsfm.sfm.view_pairs import putative_matches
+from torchsfm.sfm.view_pairs import PairMatches, putative_matches
 
 K = torch.tensor([[689.87, 0.0, 380.0], [0.0, 691.04, 251.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
 
@@ -104,3 +104,14 @@ def test_every_default_stage_declares_what_it_reads():
                for stage in pipeline if isinstance(stage, ConfiguredStage))
     model = torchsfm.reconstruct(_images(), K, pipeline=pipeline)
     assert model.num_views == 3 and model.segmented_tracks is not None
+
+
+def test_only_the_strongest_bridge_joins_two_groups():
+    """Views 0-2 form the model, 3-4 a separate one, 5 stands alone: of the bridges 2-3 (40
+    matches), 0-4 (90) and 1-5 (30), 4-5 (50), only 0-4 joins the two models (the stronger of
+    the two that do) and 4-5 brings view 5 (1-5, weaker, would join what is already joined)."""
+    def bridge(count: int) -> PairMatches:
+        return PairMatches(torch.arange(count), torch.arange(count), 0.5, torch.eye(3))
+
+    bridges = {(2, 3): bridge(40), (0, 4): bridge(90), (1, 5): bridge(30), (4, 5): bridge(50), (0, 1): bridge(99)}
+    assert sorted(joining_pairs(bridges, [[0, 1, 2], [3, 4]], 6)) == [(0, 4), (4, 5)]

@@ -80,16 +80,22 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
     """(V, V) number of mutually best coarse NCC matches above ``threshold`` (0 on the diagonal)."""
     V = features.patches.shape[0]
     scores = torch.zeros(V, V, dtype=torch.long)
-    if features.patches.shape[1] == 0:  # no view has a coarse corner
-        return scores
     for i in range(V - 1):  # the views after i only: a mutual best match is mutual both ways
-        ncc = features.patches[i + 1:] @ features.patches[i].T  # (V - i - 1, L, K): corner l of view v, corner k of i
-        best2 = ncc.argmax(1)  # (.., K): best partner in view v of each corner of i
-        best1 = ncc.argmax(2)  # (.., L): best corner of i for each corner of v
-        mutual = best1.gather(1, best2) == torch.arange(ncc.shape[2])[None]
-        strong = ncc.gather(1, best2[:, None])[:, 0] > threshold
-        scores[i, i + 1:] = (mutual & strong & features.valid[i][None]).sum(1)
+        scores[i, i + 1:] = mutual_best_counts(features, i, torch.arange(i + 1, V), threshold)
     return scores + scores.T
+
+
+def mutual_best_counts(features: CoarseFeatures, view: int, others: Tensor, threshold: float) -> Tensor:
+    """(O,) number of mutually best coarse NCC matches above ``threshold`` between ``view`` and
+    each of the (O,) ``others`` (one GEMM)."""
+    if features.patches.shape[1] == 0 or others.numel() == 0:  # no view has a coarse corner
+        return torch.zeros(others.numel(), dtype=torch.long)
+    ncc = features.patches[others] @ features.patches[view].T  # (O, L, K): corner l of view o, corner k of the view
+    best2 = ncc.argmax(1)  # (O, K): best partner in view o of each corner of the view
+    best1 = ncc.argmax(2)  # (O, L): best corner of the view for each corner of o
+    mutual = best1.gather(1, best2) == torch.arange(ncc.shape[2])[None]
+    strong = ncc.gather(1, best2[:, None])[:, 0] > threshold
+    return (mutual & strong & features.valid[view][None]).sum(1)
 
 
 def considered_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> list[tuple[int, int]]:
@@ -134,6 +140,23 @@ def _best_partners(scores: Tensor, config: PairsConfig) -> set[tuple[int, int]]:
     return {(min(i, j), max(i, j)) for i in range(scores.shape[0]) for j in ranked[i].tolist() if j != i}
 
 
+def bridge_pairs(greys: Tensor, stranded: list[int], registered: list[int], config: PairsConfig) -> list[tuple[int, int]]:
+    """View pairs (i < j) that may link each ``stranded`` view to the ``registered`` ones: its
+    ``2 × neighbours`` best-scoring registered partners by the coarse score
+    (:func:`mutual_best_counts`; wide baselines score low but still rank) of (V, 1, H, W) grey
+    images."""
+    if not stranded or not registered:
+        return []
+    features = coarse_features(greys, config)
+    others = torch.tensor(registered)
+    pairs = set()
+    for view in stranded:
+        scores = mutual_best_counts(features, view, others, config.ncc_threshold)
+        best = others[scores.argsort(descending=True, stable=True)[:2 * config.neighbours]]
+        pairs |= {(min(view, other), max(view, other)) for other in best.tolist()}
+    return sorted(pairs)
+
+
 def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generator | None = None,
                    guided: bool = False) -> dict[tuple[int, int], Tensor | None]:
     """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
@@ -152,15 +175,22 @@ def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generato
 def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
                         generator: torch.Generator | None = None
                         ) -> tuple[dict[tuple[int, int], Tensor | None], dict[tuple[int, int], int]]:
-    """Per view pair (i, j), the homography (3, 3) mapping view i's pixels to view j's, fitted by
-    RANSAC to the coarse mutual-best matches (None with fewer than ``min_score`` inliers), and its
-    number of inliers (the number of matches where too few to fit). The fits run as ragged
-    batches of ``HOMOGRAPHY_BATCH`` pairs (one RANSAC call each)."""
+    """:func:`fit_homographies` of the view pairs' coarse mutual-best matches."""
     matches = []
     for i, j in pairs:
         ki, kj = features.valid[i], features.valid[j]
         a, b = _mutual_best(features.patches[i][ki] @ features.patches[j][kj].T, config.ncc_threshold)
         matches.append(torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1))
+    return fit_homographies(pairs, matches, config, generator)
+
+
+def fit_homographies(pairs: list[tuple[int, int]], matches: list[Tensor], config: PairsConfig,
+                     generator: torch.Generator | None = None
+                     ) -> tuple[dict[tuple[int, int], Tensor | None], dict[tuple[int, int], int]]:
+    """Per view pair (i, j), the homography (3, 3) mapping view i's pixels to view j's, fitted by
+    RANSAC (``homography_threshold`` px) to its (M, 4) matches x_i, x_j (None with fewer than
+    ``min_score`` inliers), and its number of inliers (the number of matches where too few to
+    fit). The fits run as ragged batches of ``HOMOGRAPHY_BATCH`` pairs (one RANSAC call each)."""
     homographies = dict.fromkeys(pairs)
     inliers = {pair: rows.shape[0] for pair, rows in zip(pairs, matches)}
     fitted = [k for k, rows in enumerate(matches) if rows.shape[0] >= config.min_score]

@@ -3,18 +3,21 @@ keypoints with RootSIFT descriptors, matched by mutual nearest neighbours that p
 ratio test — an option for rotations and scale changes that even warped NCC cannot follow.
 The stages replace :class:`~torchsfm.sfm.stages.DetectCorners` and
 :class:`~torchsfm.sfm.stages.MatchPairs`; pair selection, verification and the mapper are the
-same."""
+same. With the NCC matcher, :func:`sift_homographies` guides the matching of the pairs that may
+link views the mapper left out (:class:`~torchsfm.sfm.stages.BridgeWithSift`)."""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
 import torch
+from torch import Tensor
 from kornia.feature import SIFTFeature, get_laf_center, match_smnn
 
 from torchsfm.camera import undistort_points
+from torchsfm.config import PairsConfig
 from torchsfm.images import to_grey_bytes, to_unit_float
-from torchsfm.sfm.pairs import pairs_to_match
+from torchsfm.sfm.pairs import fit_homographies, pairs_to_match
 from torchsfm.pipeline import ConfiguredStage
 
 if TYPE_CHECKING:  # the state type only: stages.py builds its default pipeline from these stages
@@ -30,13 +33,7 @@ class DetectSiftFeatures(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
         state.report(f"SIFT features of {len(state.images)} views")
-        sift = SIFTFeature(num_features=self.config.pairs.sift_features)
-        state.raw, state.descriptors = [], []
-        with torch.no_grad():
-            for grey in state.greys:
-                frames, _, descriptors = sift(to_unit_float(grey[None]))
-                state.raw.append(get_laf_center(frames)[0].double())
-                state.descriptors.append(descriptors[0])
+        state.raw, state.descriptors = sift_features(state.greys, self.config.pairs.sift_features)
         state.corners = [undistort_points(raw, state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
         return state
 
@@ -57,3 +54,33 @@ class MatchSiftFeatures(ConfiguredStage):
             if index.shape[0] >= config.reconstruction.min_pair_inliers:
                 state.putative[(i, j)] = (index[:, 0], index[:, 1])
         return state
+
+
+def sift_features(greys: Tensor, num_features: int) -> tuple[list[Tensor], list[Tensor]]:
+    """SIFT keypoint centres (K_v, 2) float64 pixels and descriptors (K_v, 128) of every view of
+    (V, 1, H, W) grey images, one view at a time."""
+    sift = SIFTFeature(num_features=num_features)
+    points, descriptors = [], []
+    with torch.no_grad():
+        for grey in greys:
+            frames, _, described = sift(to_unit_float(grey[None]))
+            points.append(get_laf_center(frames)[0].double())
+            descriptors.append(described[0])
+    return points, descriptors
+
+
+def sift_homographies(greys: Tensor, pairs: list[tuple[int, int]], config: PairsConfig,
+                      generator: torch.Generator | None = None) -> dict[tuple[int, int], Tensor]:
+    """A homography (3, 3) mapping view i's pixels to view j's for each view pair (i, j) of
+    (V, 1, H, W) grey images where one holds: RANSAC (:func:`~torchsfm.sfm.pairs.fit_homographies`)
+    on the SIFT matches (mutual nearest descriptors passing the ratio test), ``min_score``
+    inliers at least. Only the views of ``pairs`` are described."""
+    views = sorted({v for pair in pairs for v in pair})
+    points, descriptors = sift_features(greys[views], config.sift_features)
+    slot = {v: k for k, v in enumerate(views)}
+    matches = []
+    for i, j in pairs:
+        _, index = match_smnn(descriptors[slot[i]], descriptors[slot[j]], config.sift_ratio)
+        matches.append(torch.cat([points[slot[i]][index[:, 0]], points[slot[j]][index[:, 1]]], -1))
+    homographies, _ = fit_homographies(pairs, matches, config, generator)
+    return {pair: H for pair, H in homographies.items() if H is not None}

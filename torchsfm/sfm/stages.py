@@ -7,7 +7,8 @@ stage holds the config sections it reads and no others (:class:`ConfiguredStage`
 
     pipeline = default_pipeline(config)       # DetectCorners, MatchPairs, VerifyPairs,
                                               # SelfCalibrate, BuildTracks, RejectMovingObjects,
-                                              # MapIncrementally
+                                              # MapIncrementally, RematchUnregistered,
+                                              # BridgeWithSift
     state = pipeline[:3](ViewSet.of(images, K))   # verified pairs only
     pipeline[1] = MyMatcher()                 # any module: ViewSet -> ViewSet
     pipeline[2] = VerifyPairs(fundamental=FundamentalConfig(minimal_solver="seven_point"))
@@ -29,10 +30,11 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
-from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures
+from torchsfm.sfm.pairs import bridge_pairs
+from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks
-from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, image_centre, putative_matches, reject_moving_tracks,
-                                     self_calibrate, verify_pairs)
+from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
+                                     reject_moving_tracks, self_calibrate, verify_pairs)
 
 
 
@@ -218,11 +220,81 @@ class RematchUnregistered(ConfiguredStage):
         state.report(f"{len(stranded)} views unregistered or loosely registered: matching {len(weak)} verified pairs of them "
                      "and their partners along epipolar lines")
         rematched = epipolar_matches(state.greys, state.raw, state.corners, weak, state.homographies, self.config)
-        second = self.retry(replace(state, pairs={**state.pairs, **rematched}))
-        better = _standing(second.reconstruction) > _standing(first)
-        state.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
-                     + ("kept" if better else "the first model kept"))
-        return second if better else state
+        return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched})))
+
+
+class BridgeWithSift(ConfiguredStage):
+    """When views stay out of the model (``pairs.sift_bridge``): the pairs that may link each of
+    them to the registered views (:func:`~torchsfm.sfm.pairs.bridge_pairs`) get a homography
+    from SIFT matches (:func:`~torchsfm.sfm.sift.sift_homographies`) in place of the coarse NCC
+    one — a wide baseline (rotations of 40-60 degrees) leaves too few coarse NCC matches to fit
+    it, or fits a false one — then the thesis' matching as before: NCC + strength measure at the
+    corners, the disc centred on the homography's prediction and the patches warped by it,
+    robust verification — the strongest pair joining two groups of views only
+    (:func:`joining_pairs`) — and the epipolar-band rematch (:func:`epipolar_matches`). The
+    joining pairs replace those of the same views, and the tracks, the moving-object decision
+    and the mapping run again; the model that registers more views is kept. SIFT only finds
+    where to look: every match is still a Harris corner pair. Costs nothing where every view
+    registers. ``retry`` as for :class:`RematchUnregistered`."""
+
+    SECTIONS = ("matching", "pairs", "fundamental", "lm", "reconstruction")
+
+    def __init__(self, retry: Pipeline | None = None, **sections) -> None:
+        super().__init__(**sections)
+        self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
+
+    def forward(self, state: ViewSet) -> ViewSet:
+        registered = sorted(state.reconstruction.view_indices)
+        stranded = sorted(set(range(len(state.images))) - set(registered))
+        candidates = bridge_pairs(state.greys, stranded, registered, self.config.pairs)
+        if not candidates:
+            return state
+        state.report(f"{len(stranded)} views left out: SIFT homographies for {len(candidates)} pairs that may link them")
+        homographies = sift_homographies(state.greys, candidates, self.config.pairs, state.generator)
+        putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
+        models = [registered, *(other.view_indices for other in state.reconstruction.other_models)]
+        verified = joining_pairs(verify_pairs(putative, state.corners, self.config, state.generator, state.report),
+                                 models, len(state.images))
+        if not verified:
+            return state
+        rematched = epipolar_matches(state.greys, state.raw, state.corners, verified, homographies, self.config)
+        return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched},
+                                                    homographies={**state.homographies, **homographies})))
+
+
+def joining_pairs(bridges: dict[tuple[int, int], PairMatches], models: list[list[int]], num_views: int
+                  ) -> dict[tuple[int, int], PairMatches]:
+    """The ``bridges`` that each join two groups of views not yet joined — the views of one of
+    the ``models``, or a view in none — strongest (most matches) first: a maximum spanning
+    forest over the groups (Kruskal). One link per join: a wide-baseline pair can verify falsely
+    (a dominant plane and a few chance matches), and the strongest link is the likeliest true
+    one."""
+    group = list(range(num_views))
+
+    def root(v: int) -> int:
+        while group[v] != v:
+            group[v] = group[group[v]]
+            v = group[v]
+        return v
+
+    for views in models:
+        for v in views[1:]:
+            group[root(v)] = root(views[0])
+    joining = {}
+    for (i, j), match in sorted(bridges.items(), key=lambda item: -item[1].index1.numel()):
+        if root(i) != root(j):
+            group[root(i)] = root(j)
+            joining[(i, j)] = match
+    return joining
+
+
+def _better_of(first: ViewSet, second: ViewSet) -> ViewSet:
+    """The state whose model registers more views, then fewer of them loosely (``first`` on a
+    tie)."""
+    better = _standing(second.reconstruction) > _standing(first.reconstruction)
+    first.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
+                 + ("kept" if better else "the first model kept"))
+    return second if better else first
 
 
 def _standing(model: Reconstruction) -> tuple[int, int]:
@@ -251,7 +323,8 @@ def default_pipeline(config: Config | None = None) -> Pipeline:
     sift = config.pairs.matcher == "sift"
     features = (DetectSiftFeatures, MatchSiftFeatures) if sift else (DetectCorners, MatchPairs)
     reject, mapper = RejectMovingObjects.from_config(config), MapIncrementally.from_config(config)
-    rematch = (RematchUnregistered.from_config(config, retry=Pipeline(BuildTracks(), reject, mapper)),) \
-        if config.pairs.epipolar_matching and not sift else ()
+    retry = Pipeline(BuildTracks(), reject, mapper)
+    rematch = (RematchUnregistered.from_config(config, retry=retry),) if config.pairs.epipolar_matching and not sift else ()
+    bridge = (BridgeWithSift.from_config(config, retry=retry),) if config.pairs.sift_bridge and not sift else ()
     return Pipeline(*(stage.from_config(config) for stage in features), VerifyPairs.from_config(config),
-                    SelfCalibrate.from_config(config), BuildTracks(), reject, mapper, *rematch)
+                    SelfCalibrate.from_config(config), BuildTracks(), reject, mapper, *rematch, *bridge)

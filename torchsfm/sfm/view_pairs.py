@@ -61,8 +61,18 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs). Also returns each matched pair's coarse homography (None
     where none holds or ``pairs.guided`` is off)."""
-    putative = {}
     homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided)
+    return guided_matches(greys, raw, homographies, config, report), homographies
+
+
+def guided_matches(greys: Tensor, raw: list[Tensor], homographies: dict[tuple[int, int], Tensor | None], config: Config,
+                   report: Progress) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
+    """NCC + strength-measure matches (index1, index2) of every view pair (i, j) of
+    ``homographies``, the search disc centred on the pair's homography's prediction where it
+    moves corners by more than a quarter of the disc, and the patches warped by its local affine
+    map (``pairs.warp_patches``); a None homography: the plain disc. Pairs with fewer than
+    ``min_pair_inliers`` matches are left out."""
+    putative = {}
     for (i, j), H in homographies.items():
         report(f"matching views {i} and {j}")
         predicted = warp = None
@@ -75,7 +85,7 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
         matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted, warp)
         if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
             putative[(i, j)] = (matches.index1, matches.index2)
-    return putative, homographies
+    return putative
 
 
 def epipolar_matches(greys: Tensor, raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],

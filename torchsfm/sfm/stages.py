@@ -231,8 +231,9 @@ class BridgeWithSift(ConfiguredStage):
     it, or fits a false one — then the thesis' matching as before: NCC + strength measure at the
     corners, the disc centred on the homography's prediction and the patches warped by it,
     robust verification — the strongest pair joining two groups of views only
-    (:func:`joining_pairs`) — and the epipolar-band rematch (:func:`epipolar_matches`). The
-    joining pairs replace those of the same views, and the tracks, the moving-object decision
+    (:func:`joining_pairs`) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
+    joining pairs and of the other verified pairs of their views (their tracks carry the link
+    into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
     and the mapping run again; the model that registers more views is kept. SIFT only finds
     where to look: every match is still a Harris corner pair. Costs nothing where every view
     registers. ``retry`` as for :class:`RematchUnregistered`."""
@@ -257,9 +258,11 @@ class BridgeWithSift(ConfiguredStage):
                                  models, len(state.images))
         if not verified:
             return state
-        rematched = epipolar_matches(state.greys, state.raw, state.corners, verified, homographies, self.config)
-        return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched},
-                                                    homographies={**state.homographies, **homographies})))
+        joined = {v for key in verified for v in key}
+        partners = {key: match for key, match in state.pairs.items() if joined & set(key)}
+        homographies = {**state.homographies, **homographies}
+        rematched = epipolar_matches(state.greys, state.raw, state.corners, {**partners, **verified}, homographies, self.config)
+        return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched}, homographies=homographies)))
 
 
 def joining_pairs(bridges: dict[tuple[int, int], PairMatches], models: list[list[int]], num_views: int

@@ -70,22 +70,34 @@ def guided_matches(greys: Tensor, raw: list[Tensor], homographies: dict[tuple[in
     """NCC + strength-measure matches (index1, index2) of every view pair (i, j) of
     ``homographies``, the search disc centred on the pair's homography's prediction where it
     moves corners by more than a quarter of the disc, and the patches warped by its local affine
-    map (``pairs.warp_patches``); a None homography: the plain disc. Pairs with fewer than
-    ``min_pair_inliers`` matches are left out."""
+    map (``pairs.warp_patches``); a None homography: the plain disc. The patches of the view that
+    sees the scene larger (the homography's median local area scale from it above 1) are the
+    ones warped: shrunk, they keep their detail, where the other view's, magnified, would blur.
+    Pairs with fewer than ``min_pair_inliers`` matches are left out."""
     putative = {}
     for (i, j), H in homographies.items():
         report(f"matching views {i} and {j}")
-        predicted = warp = None
-        if H is not None:
-            moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
-            if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
-                predicted = moved
-            if config.pairs.warp_patches:
-                warp = patch_warps(H, raw[i].double())
-        matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted, warp)
-        if matches.index1.numel() >= config.reconstruction.min_pair_inliers:
-            putative[(i, j)] = (matches.index1, matches.index2)
+        if H is not None and config.pairs.warp_patches and float(torch.linalg.det(homography_jacobian(H, raw[i].double())).median()) > 1:
+            index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config)
+        else:
+            index1, index2 = _match_along(greys, raw, i, j, H, config)
+        if index1.numel() >= config.reconstruction.min_pair_inliers:
+            putative[(i, j)] = (index1, index2)
     return putative
+
+
+def _match_along(greys: Tensor, raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config) -> tuple[Tensor, Tensor]:
+    """Matched corner indices of views i and j, guided by the homography H (3, 3) from i to j
+    (or None) as :func:`guided_matches` says."""
+    predicted = warp = None
+    if H is not None:
+        moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
+        if float((moved - raw[i]).norm(dim=-1).median()) > config.matching.search_radius / 4:
+            predicted = moved
+        if config.pairs.warp_patches:
+            warp = patch_warps(H, raw[i].double())
+    matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted, warp)
+    return matches.index1, matches.index2
 
 
 def epipolar_matches(greys: Tensor, raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],

@@ -124,3 +124,30 @@ def test_a_view_with_too_few_points_is_posed_from_its_verified_pair_and_scaled_b
     state.points[:5] += torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64) * torch.arange(1, 6)[:, None]  # each off by another amount
     assert "agrees with only" in pose_from_pair(state, pairs, 2, config, torch.Generator().manual_seed(0))
     assert pose_from_pair(state, {}, 2, config, torch.Generator().manual_seed(0)) == "no verified pair with a registered view"
+
+
+def test_a_pair_pose_whose_length_no_point_fixes_is_refused():
+    """Forward motion: cameras 1 m apart along their optical axis, the 5 points view 2 sees 20-40
+    m ahead within 1 m of the axis (near the epipole). Every point agrees with the pair's pose
+    whatever the translation's length (10 % of it moves them by 0.1 px at most, under the 2 px
+    threshold), so the pose is refused and the reason says that no point fixes the length."""
+    from torchsfm.sfm.mapping import pose_from_pair
+    from torchsfm.sfm.view_pairs import PairMatches
+
+    generator = torch.Generator().manual_seed(0)
+    K = torch.tensor([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]], dtype=torch.float64)
+    points = torch.cat([torch.rand(40, 2, generator=generator, dtype=torch.float64) * 2 - 1,
+                        20 + 20 * torch.rand(40, 1, generator=generator, dtype=torch.float64)], -1)
+    R = torch.eye(3, dtype=torch.float64).expand(3, 3, 3).clone()
+    t = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, -2.0]], dtype=torch.float64)
+    corners = [project(projection_matrix(K, R[v], t[v]), points) for v in range(3)]
+    track = torch.arange(40).repeat_interleave(3)
+    tracks = Tracks(view=torch.arange(3).repeat(40), corner=track.clone(), track=track, num_tracks=40)
+    state = MapperState(tracks, corners, corners, K.expand(3, 3, 3), Config())
+    state.R, state.t, state.points = R.clone(), t.clone(), points.clone()
+    state.registered[:2] = True
+    state.has_point[:5] = True
+    everything = torch.arange(40)
+    pairs = {(1, 2): PairMatches(index1=everything, index2=everything, homography_ratio=0.0, F=torch.eye(3, dtype=torch.float64))}
+    reason = pose_from_pair(state, pairs, 2, Config(), torch.Generator().manual_seed(0))
+    assert isinstance(reason, str) and "agrees with only 0 of the 0 reconstructed points that fix the length" in reason, reason

@@ -28,6 +28,7 @@ from torchsfm.numerics import floor_tiny
 MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
 MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
 PAIR_POSE_MIN_POINTS = 3  # a length along one ray needs one point; three that agree, and a majority, make it robust
+PAIR_POSE_SCALE_TOLERANCE = 0.1  # a point fixes a translation's length if 10 % more or less moves it by the resection threshold
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 RESECTION_SHARE = 0.75  # the views that see this share of the best view's points are resected together (OpenMVG's rule)
@@ -292,8 +293,11 @@ def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches]
     (:func:`estimate_relative_pose` on its matches: the rotation and the direction of travel from
     hundreds of matches, where a wide baseline left few tracks that reach the model), its
     translation's length from the reconstructed points ``view`` sees (each fixes one along its
-    ray; their median). The pose stands if most of those points, and at least
-    ``PAIR_POSE_MIN_POINTS``, reproject within the resection threshold. Returns (R (3, 3),
+    ray; their median). Only points that the length moves count as evidence: those a change of
+    ``PAIR_POSE_SCALE_TOLERANCE`` of it would shift by the resection threshold or more (in
+    forward motion the points near the epipole hardly move, whatever the length). The pose
+    stands if most of those points, and at least ``PAIR_POSE_MIN_POINTS``, reproject within the
+    resection threshold. Returns (R (3, 3),
     t (3,), what was done) or why not."""
     partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
     if not partners:
@@ -315,15 +319,22 @@ def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches]
     scales = -(across_fixed * across_t).sum(-1) / floor_tiny(across_t.square().sum(-1))
     if scales.numel() == 0:
         return f"it sees no reconstructed point to scale its pair with view {other}"
-    R_view, t_view = R @ model.R[other], R @ model.t[other] + scales.median() * t
+    scale = scales.median()
+    R_view, t_view = R @ model.R[other], R @ model.t[other] + scale * t
     camera = Camera(model.K[view], R_view, t_view)
     depth = camera.world_to_camera(X[None])[0, :, 2]
     error = (camera.project(X[None])[0] - model.pixels[rows]).norm(dim=-1)
-    agree = int(((depth > 0) & (error < config.resection.ransac.inlier_threshold)).sum())
-    if agree < PAIR_POSE_MIN_POINTS or 2 * agree <= scales.numel():
-        return f"its pair with view {other} agrees with only {agree} of the {scales.numel()} reconstructed points it sees"
+    threshold = config.resection.ransac.inlier_threshold
+    seen = fixed + scale * t  # (n, 3) the points in the view's camera frame
+    focal = model.K[view].diagonal()[:2].mean()
+    shift = focal * (t[:2] * seen[:, 2:] - seen[:, :2] * t[2]).norm(dim=-1) / seen[:, 2].square()  # px per unit of length
+    informative = (depth > 0) & (PAIR_POSE_SCALE_TOLERANCE * scale.abs() * shift >= threshold)
+    agree = int((informative & (error < threshold)).sum())
+    if agree < PAIR_POSE_MIN_POINTS or 2 * agree <= int(informative.sum()):
+        return (f"its pair with view {other} agrees with only {agree} of the {int(informative.sum())} reconstructed points "
+                f"that fix the length of its translation (of {scales.numel()} it sees)")
     return R_view, t_view, (f"view {view} posed from its verified pair with view {other} ({match.index1.numel()} matches), "
-                            f"scaled by the {agree} of its {scales.numel()} reconstructed points that agree")
+                            f"scaled by the {agree} of its {scales.numel()} reconstructed points that agree and fix it")
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:

@@ -231,7 +231,8 @@ class BridgeWithSift(ConfiguredStage):
     it, or fits a false one — then the thesis' matching as before: NCC + strength measure at the
     corners, the disc centred on the homography's prediction and the patches warped by it,
     robust verification — the strongest pair joining two groups of views only
-    (:func:`joining_pairs`) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
+    (:func:`joining_pairs`; the groups: the model, the other models, and the left-out views that
+    verified pairs link) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
     joining pairs and of the other verified pairs of their views (their tracks carry the link
     into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
     and the mapping run again; the model that registers more views is kept. SIFT only finds
@@ -253,9 +254,10 @@ class BridgeWithSift(ConfiguredStage):
         state.report(f"{len(stranded)} views left out: SIFT homographies for {len(candidates)} pairs that may link them")
         homographies = sift_homographies(state.greys, candidates, self.config.pairs, state.generator)
         putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
-        models = [registered, *(other.view_indices for other in state.reconstruction.other_models)]
+        groups = [registered, *(other.view_indices for other in state.reconstruction.other_models),
+                  *(list(key) for key in state.pairs if not set(key) & set(registered))]  # links among left-out views stand
         verified = joining_pairs(verify_pairs(putative, state.corners, self.config, state.generator, state.report),
-                                 models, len(state.images))
+                                 groups, len(state.images))
         if not verified:
             return state
         joined = {v for key in verified for v in key}
@@ -265,13 +267,13 @@ class BridgeWithSift(ConfiguredStage):
         return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched}, homographies=homographies)))
 
 
-def joining_pairs(bridges: dict[tuple[int, int], PairMatches], models: list[list[int]], num_views: int
+def joining_pairs(bridges: dict[tuple[int, int], PairMatches], groups: list[list[int]], num_views: int
                   ) -> dict[tuple[int, int], PairMatches]:
-    """The ``bridges`` that each join two groups of views not yet joined — the views of one of
-    the ``models``, or a view in none — strongest (most matches) first: a maximum spanning
-    forest over the groups (Kruskal). One link per join: a wide-baseline pair can verify falsely
-    (a dominant plane and a few chance matches), and the strongest link is the likeliest true
-    one."""
+    """The ``bridges`` that each join two groups of views not yet joined — views that share one
+    of the (overlapping) ``groups``, or a view in none — strongest (most matches) first: a
+    maximum spanning forest over the groups (Kruskal). One link per join: a wide-baseline pair
+    can verify falsely (a dominant plane and a few chance matches), and the strongest link is the
+    likeliest true one."""
     group = list(range(num_views))
 
     def root(v: int) -> int:
@@ -280,7 +282,7 @@ def joining_pairs(bridges: dict[tuple[int, int], PairMatches], models: list[list
             v = group[v]
         return v
 
-    for views in models:
+    for views in groups:
         for v in views[1:]:
             group[root(v)] = root(views[0])
     joining = {}

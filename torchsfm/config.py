@@ -398,7 +398,8 @@ class ReconstructionConfig:
     keeps at least ``min_pair_inliers``. The initial pair is the one with
     most inliers among those whose homography explains at most ``max_homography_ratio`` of the F
     inliers (``homography_threshold`` px) and whose inliers triangulate with a median angle of at
-    least ``min_initial_angle`` degrees. Each next view is resected from its tracks' 3-D points
+    least ``min_initial_angle`` degrees (where no pair, matched or linked through tracks, reaches
+    it: half of it, as COLMAP relaxes its initial angle). Each next view is resected from its tracks' 3-D points
     and needs ``min_resection_inliers`` (the resection threshold doubles, up to
     ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`). New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and

@@ -185,6 +185,21 @@ def test_forward_motion_too_slow_for_any_matched_pair_starts_from_a_wider_pair(s
     assert float(errors.rotation.max()) < 1.0  # degrees
 
 
+def test_without_a_pair_at_the_initial_angle_the_model_starts_at_half_of_it(shared_data):
+    """Fountain views 0-2 (triangulation angles between 15 and 30 degrees): asked for 30 degrees,
+    no pair (matched or wider) qualifies, and the model starts at half the angle, as COLMAP does,
+    and says so; asked for 100, not even half qualifies, and the error names the halved angle."""
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    messages = []
+    model = torchsfm.reconstruct(sequence.images[:3], sequence.K[:3], config=with_overrides(Config(), ["reconstruction.min_initial_angle=30"]),
+                                 generator=torch.Generator().manual_seed(0), progress=messages.append)
+    assert model.view_indices == [0, 1, 2]
+    assert any("no pair reaches 30 deg" in message and "at half of it" in message for message in messages)
+    with pytest.raises(torchsfm.DegenerateConfigurationError, match="nor any at half the angle, 50 deg"):
+        torchsfm.reconstruct(sequence.images[:3], sequence.K[:3], config=with_overrides(Config(), ["reconstruction.min_initial_angle=100"]),
+                             generator=torch.Generator().manual_seed(0))
+
+
 def test_a_video_with_6_m_between_frames_registers_every_frame(shared_data):
     """KITTI 06 every fifth frame (6 m forward per step): the points a frame sees were
     triangulated behind it, and their depth errors put them off under its true pose. Every frame

@@ -421,7 +421,18 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         try:
             (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(wider, state.corners, state.K, config, state.generator))
         except DegenerateConfigurationError as second_error:
-            raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error})") from None
+            # COLMAP's fallback: half the angle (the angles scale with 1 / f, and a focal length
+            # the pairs cannot determine, e.g. driving straight, may be the prior's twice over)
+            halved = config.reconstruction.min_initial_angle / 2
+            relaxed = dataclasses.replace(config, reconstruction=dataclasses.replace(config.reconstruction, min_initial_angle=halved))
+            try:
+                (first, second), R, t, _ = timed("initial pair", lambda: initial_pair({**pairs, **wider}, state.corners, state.K, relaxed,
+                                                                                       state.generator))
+            except DegenerateConfigurationError:
+                raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error}); "
+                                                   f"nor any at half the angle, {halved:g} deg") from None
+            state.report(f"no pair reaches {config.reconstruction.min_initial_angle:g} deg of triangulation angle: "
+                         f"started from {first}-{second} at half of it")
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True

@@ -3,8 +3,8 @@
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61 degrees apart) and
-0, 4, 8, 10; the KITTI odometry 06 excerpt (51 frames, forward motion), every third, fifth and eighth frame
-of it (about 6 and 10 m apart), and its
+0, 4, 8, 10; the KITTI odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth
+frame of it (about 6, 10 and 12 m apart), and its
 frames shuffled; Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
@@ -67,6 +67,7 @@ def cases(data: Path) -> dict[str, StrechaSequence]:
         "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
         "kitti06_every5": subset(kitti, list(range(0, 51, 5))),
         "kitti06_every8": subset(kitti, list(range(0, 51, 8))),
+        "kitti06_every10": subset(kitti, list(range(0, 51, 10))),
         "kitti06_shuffled": subset(kitti, shuffle(51)),
         "merton": read_merton(data / "oxford_merton1"),
     }

@@ -151,3 +151,22 @@ def test_a_pair_pose_whose_length_no_point_fixes_is_refused():
     pairs = {(1, 2): PairMatches(index1=everything, index2=everything, homography_ratio=0.0, F=torch.eye(3, dtype=torch.float64))}
     reason = pose_from_pair(state, pairs, 2, Config(), torch.Generator().manual_seed(0))
     assert isinstance(reason, str) and "agrees with only 0 of the 0 reconstructed points that fix the length" in reason, reason
+
+
+def test_a_loose_resection_that_its_verified_pair_contradicts_is_refused():
+    """A pose from a resection at a widened threshold (8 px) stands only if the epipolar
+    geometry of it and its partner fits most of their verified matches: the true pose of view 2
+    fits all 300 (noise-free), one tilted by 3 degrees (across the epipolar lines) fits none, and the
+    reason says so."""
+    from torchsfm.sfm.mapping import pair_disagreement
+    from torchsfm.sfm.view_pairs import PairMatches
+
+    R, t, points, state, _ = sequence(num_views=3)
+    state.registered[2] = False
+    everything = torch.arange(points.shape[0])
+    pairs = {(1, 2): PairMatches(index1=everything, index2=everything, homography_ratio=0.0, F=torch.eye(3, dtype=torch.float64))}
+    assert pair_disagreement(state, pairs, 2, R[2], t[2], 8.0) is None
+    turned = axis_angle_to_rotation(torch.tensor([3.0, 0.0, 0.0], dtype=torch.float64) * torch.pi / 180) @ R[2]
+    reason = pair_disagreement(state, pairs, 2, turned, t[2], 8.0)
+    assert reason == "its resection at 8 px disagrees with its verified pair with view 1: 0 of the pair's 300 matches fit the two poses"
+    assert pair_disagreement(state, {}, 2, turned, t[2], 8.0) is None  # no pair to check against

@@ -14,6 +14,7 @@ from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, res
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
+from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
 from torchsfm.geometry.rotation import angle_between
 from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust
@@ -337,6 +338,28 @@ def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches]
                             f"scaled by the {agree} of its {scales.numel()} reconstructed points that agree and fix it")
 
 
+def pair_disagreement(model: MapperState, pairs: dict[tuple[int, int], PairMatches], view: int, R: Tensor, t: Tensor,
+                      threshold: float) -> str | None:
+    """Why the pose R (3, 3), t (3,) of ``view`` from a resection at a widened ``threshold`` (px)
+    is refused, or None: the epipolar geometry of that pose and of its registered partner with
+    most verified matches must fit most of those matches within the same threshold. A widened
+    threshold also admits a wrong pose that collects the points whose depth errors put them
+    pixels off; the pair's matches, hundreds, verified on their own, do not move with the points."""
+    partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
+    if not partners:
+        return None
+    (i, j), match = max(partners, key=lambda item: item[1].index1.numel())
+    other = i + j - view
+    (R_i, t_i), (R_j, t_j) = [(R, t) if v == view else (model.R[v], model.t[v]) for v in (i, j)]
+    relative = R_j @ R_i.T
+    F = fundamental_from_pose(model.K[i], model.K[j], relative, t_j - relative @ t_i)
+    fit = int((sampson_error(F, model.corners[i][match.index1], model.corners[j][match.index2]) < threshold**2).sum())
+    if 2 * fit > match.index1.numel():
+        return None
+    return (f"its resection at {threshold:g} px disagrees with its verified pair with view {other}: "
+            f"{fit} of the pair's {match.index1.numel()} matches fit the two poses")
+
+
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
     """The K shared by every view — fx, fy, cx, cy — adjusted jointly with the cameras and points
     (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``), in place. A result
@@ -480,6 +503,10 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
                 continue
             pose, threshold = outcome
             if threshold > config.resection.ransac.inlier_threshold:
+                refused = pair_disagreement(model, pairs, view, pose.R, pose.t, threshold)
+                if refused is not None:
+                    unregistered[view] = refused
+                    continue
                 model.loose_resections[view] = threshold
             model.R[view], model.t[view] = pose.R, pose.t
             model.registered[view] = True

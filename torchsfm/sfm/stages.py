@@ -233,8 +233,8 @@ class BridgeWithSift(ConfiguredStage):
     robust verification — the strongest pair joining two groups of views only
     (:func:`joining_pairs`; the groups: the model, the other models, and the left-out views that
     verified pairs link) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
-    joining pairs and of the other verified pairs of their views (their tracks carry the link
-    into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
+    joining pairs and of the other verified pairs of their views and of the left-out views (their
+    tracks carry the link into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
     and the mapping run again; the model that registers more views is kept. SIFT only finds
     where to look: every match is still a Harris corner pair. Costs nothing where every view
     registers. ``retry`` as for :class:`RematchUnregistered`."""
@@ -260,7 +260,7 @@ class BridgeWithSift(ConfiguredStage):
                                  groups, len(state.images))
         if not verified:
             return state
-        joined = {v for key in verified for v in key}
+        joined = set(stranded) | {v for key in verified for v in key}
         partners = {key: match for key, match in state.pairs.items() if joined & set(key)}
         homographies = {**state.homographies, **homographies}
         rematched = epipolar_matches(state.greys, state.raw, state.corners, {**partners, **verified}, homographies, self.config)

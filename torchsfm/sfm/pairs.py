@@ -142,7 +142,7 @@ def _best_partners(scores: Tensor, config: PairsConfig) -> set[tuple[int, int]]:
 
 def bridge_pairs(greys: Tensor, stranded: list[int], registered: list[int], config: PairsConfig) -> list[tuple[int, int]]:
     """View pairs (i < j) that may link each ``stranded`` view to the ``registered`` ones: its
-    ``2 × neighbours`` best-scoring registered partners by the coarse score
+    ``neighbours`` best-scoring registered partners by the coarse score
     (:func:`mutual_best_counts`; wide baselines score low but still rank) of (V, 1, H, W) grey
     images."""
     if not stranded or not registered:
@@ -152,7 +152,7 @@ def bridge_pairs(greys: Tensor, stranded: list[int], registered: list[int], conf
     pairs = set()
     for view in stranded:
         scores = mutual_best_counts(features, view, others, config.ncc_threshold)
-        best = others[scores.argsort(descending=True, stable=True)[:2 * config.neighbours]]
+        best = others[scores.argsort(descending=True, stable=True)[:config.neighbours]]
         pairs |= {(min(view, other), max(view, other)) for other in best.tolist()}
     return sorted(pairs)
 

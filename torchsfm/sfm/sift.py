@@ -70,17 +70,21 @@ def sift_features(greys: Tensor, num_features: int) -> tuple[list[Tensor], list[
 
 
 def sift_homographies(greys: Tensor, pairs: list[tuple[int, int]], config: PairsConfig,
-                      generator: torch.Generator | None = None) -> dict[tuple[int, int], Tensor]:
+                      generator: torch.Generator | None = None, described: dict[int, tuple[Tensor, Tensor]] | None = None
+                      ) -> dict[tuple[int, int], Tensor]:
     """A homography (3, 3) mapping view i's pixels to view j's for each view pair (i, j) of
     (V, 1, H, W) grey images where one holds: RANSAC (:func:`~torchsfm.sfm.pairs.fit_homographies`)
     on the SIFT matches (mutual nearest descriptors passing the ratio test), ``min_score``
-    inliers at least. Only the views of ``pairs`` are described."""
-    views = sorted({v for pair in pairs for v in pair})
-    points, descriptors = sift_features(greys[views], config.sift_features)
-    slot = {v: k for k, v in enumerate(views)}
+    inliers at least. Only the views of ``pairs`` are described; ``described`` (view -> keypoints,
+    descriptors) holds views described before and receives the new ones."""
+    described = {} if described is None else described
+    new = sorted({v for pair in pairs for v in pair} - set(described))
+    if new:
+        described.update(zip(new, zip(*sift_features(greys[new], config.sift_features))))
     matches = []
     for i, j in pairs:
-        _, index = match_smnn(descriptors[slot[i]], descriptors[slot[j]], config.sift_ratio)
-        matches.append(torch.cat([points[slot[i]][index[:, 0]], points[slot[j]][index[:, 1]]], -1))
+        (points_i, descriptors_i), (points_j, descriptors_j) = described[i], described[j]
+        _, index = match_smnn(descriptors_i, descriptors_j, config.sift_ratio)
+        matches.append(torch.cat([points_i[index[:, 0]], points_j[index[:, 1]]], -1))
     homographies, _ = fit_homographies(pairs, matches, config, generator)
     return {pair: H for pair, H in homographies.items() if H is not None}

@@ -235,9 +235,9 @@ class BridgeWithSift(ConfiguredStage):
     verified pairs link) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
     joining pairs and of the other verified pairs of their views and of the left-out views (their
     tracks carry the link into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
-    and the mapping run again; the model that registers more views is kept. SIFT only finds
-    where to look: every match is still a Harris corner pair. Costs nothing where every view
-    registers. ``retry`` as for :class:`RematchUnregistered`."""
+    and the mapping run again; the model that registers more views is kept, and the stage
+    repeats while the model grows (each view described once). SIFT only finds where to look:
+    every match is still a Harris corner pair. Costs nothing where every view registers. ``retry`` as for :class:`RematchUnregistered`."""
 
     SECTIONS = ("matching", "pairs", "fundamental", "lm", "reconstruction")
 
@@ -246,25 +246,32 @@ class BridgeWithSift(ConfiguredStage):
         self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
 
     def forward(self, state: ViewSet) -> ViewSet:
-        registered = sorted(state.reconstruction.view_indices)
-        stranded = sorted(set(range(len(state.images))) - set(registered))
-        candidates = bridge_pairs(state.greys, stranded, registered, self.config.pairs)
-        if not candidates:
-            return state
-        state.report(f"{len(stranded)} views left out: SIFT homographies for {len(candidates)} pairs that may link them")
-        homographies = sift_homographies(state.greys, candidates, self.config.pairs, state.generator)
-        putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
-        groups = [registered, *(other.view_indices for other in state.reconstruction.other_models),
-                  *(list(key) for key in state.pairs if not set(key) & set(registered))]  # links among left-out views stand
-        verified = joining_pairs(verify_pairs(putative, state.corners, self.config, state.generator, state.report),
-                                 groups, len(state.images))
-        if not verified:
-            return state
-        joined = set(stranded) | {v for key in verified for v in key}
-        partners = {key: match for key, match in state.pairs.items() if joined & set(key)}
-        homographies = {**state.homographies, **homographies}
-        rematched = epipolar_matches(state.greys, state.raw, state.corners, {**partners, **verified}, homographies, self.config)
-        return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched}, homographies=homographies)))
+        described: dict[int, tuple[Tensor, Tensor]] = {}  # SIFT of the views described so far
+        tried: set[tuple[int, int]] = set()
+        while True:  # again while the model grows: the views it gained bring new partners
+            registered = sorted(state.reconstruction.view_indices)
+            stranded = sorted(set(range(len(state.images))) - set(registered))
+            candidates = [pair for pair in bridge_pairs(state.greys, stranded, registered, self.config.pairs) if pair not in tried]
+            if not candidates:
+                return state
+            tried |= set(candidates)
+            state.report(f"{len(stranded)} views left out: SIFT homographies for {len(candidates)} pairs that may link them")
+            homographies = sift_homographies(state.greys, candidates, self.config.pairs, state.generator, described)
+            putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
+            groups = [registered, *(other.view_indices for other in state.reconstruction.other_models),
+                      *(list(key) for key in state.pairs if not set(key) & set(registered))]  # links among left-out views stand
+            verified = joining_pairs(verify_pairs(putative, state.corners, self.config, state.generator, state.report),
+                                     groups, len(state.images))
+            if not verified:
+                return state
+            joined = set(stranded) | {v for key in verified for v in key}
+            partners = {key: match for key, match in state.pairs.items() if joined & set(key)}
+            homographies = {**state.homographies, **homographies}
+            rematched = epipolar_matches(state.greys, state.raw, state.corners, {**partners, **verified}, homographies, self.config)
+            chosen = _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched}, homographies=homographies)))
+            if chosen is state:
+                return state
+            state = chosen
 
 
 def joining_pairs(bridges: dict[tuple[int, int], PairMatches], groups: list[list[int]], num_views: int

@@ -228,16 +228,17 @@ class BridgeWithSift(ConfiguredStage):
     them to the registered views (:func:`~torchsfm.sfm.pairs.bridge_pairs`) get a homography
     from SIFT matches (:func:`~torchsfm.sfm.sift.sift_homographies`) in place of the coarse NCC
     one — a wide baseline (rotations of 40-60 degrees) leaves too few coarse NCC matches to fit
-    it, or fits a false one — then the thesis' matching as before: NCC + strength measure at the
-    corners, the disc centred on the homography's prediction and the patches warped by it,
-    robust verification — the strongest pair joining two groups of views only
+    it, or fits a false one. Then the thesis' matching as before: NCC + strength measure at the
+    corners, the disc centred on the homography's prediction and the patches warped by it, and
+    robust verification, of which only the strongest pair joining two groups of views is kept
     (:func:`joining_pairs`; the groups: the model, the other models, and the left-out views that
-    verified pairs link) — and the epipolar-band rematch (:func:`epipolar_matches`) of the
-    joining pairs and of the other verified pairs of their views and of the left-out views (their
-    tracks carry the link into the model). These pairs replace those of the same views, and the tracks, the moving-object decision
-    and the mapping run again; the model that registers more views is kept, and the stage
-    repeats while the model grows (each view described once). SIFT only finds where to look:
-    every match is still a Harris corner pair. Costs nothing where every view registers. ``retry`` as for :class:`RematchUnregistered`."""
+    verified pairs link); then the epipolar-band rematch (:func:`epipolar_matches`) of the
+    joining pairs and of the other verified pairs of their views and of the left-out views
+    (their tracks carry the link into the model). These pairs replace those of the same views,
+    and the tracks, the moving-object decision and the mapping run again; the model that
+    registers more views is kept, and the stage repeats while the model grows (each view
+    described once). SIFT only finds where to look: every match is still a Harris corner pair.
+    Costs nothing where every view registers. ``retry`` as for :class:`RematchUnregistered`."""
 
     SECTIONS = ("matching", "pairs", "fundamental", "lm", "reconstruction")
 

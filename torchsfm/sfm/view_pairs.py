@@ -71,19 +71,26 @@ def guided_matches(greys: Tensor, raw: list[Tensor], homographies: dict[tuple[in
     ``homographies``, the search disc centred on the pair's homography's prediction where it
     moves corners by more than a quarter of the disc, and the patches warped by its local affine
     map (``pairs.warp_patches``); a None homography: the plain disc. The patches of the view that
-    sees the scene larger (the homography's median local area scale from it above 1) are the
-    ones warped: shrunk, they keep their detail, where the other view's, magnified, would blur.
+    sees the scene larger are the ones warped (:func:`second_sees_larger`).
     Pairs with fewer than ``min_pair_inliers`` matches are left out."""
     putative = {}
     for (i, j), H in homographies.items():
         report(f"matching views {i} and {j}")
-        if H is not None and config.pairs.warp_patches and float(torch.linalg.det(homography_jacobian(H, raw[i].double())).median()) > 1:
+        if H is not None and config.pairs.warp_patches and second_sees_larger(H, raw[i]):
             index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config)
         else:
             index1, index2 = _match_along(greys, raw, i, j, H, config)
         if index1.numel() >= config.reconstruction.min_pair_inliers:
             putative[(i, j)] = (index1, index2)
     return putative
+
+
+def second_sees_larger(H: Tensor, points: Tensor) -> bool:
+    """Whether view j sees the scene larger than view i: the homography H (3, 3) from i to j
+    enlarges the surroundings of view i's (N, 2) ``points`` (median local area scale above 1).
+    Then view j's patches are the ones to warp: shrunk, they keep their detail, where view i's,
+    magnified, would blur."""
+    return float(torch.linalg.det(homography_jacobian(H, points.double())).median()) > 1
 
 
 def _match_along(greys: Tensor, raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config) -> tuple[Tensor, Tensor]:

@@ -100,3 +100,19 @@ def test_the_oriented_epipolar_constraint_keeps_points_in_front_of_both_cameras(
     assert bool(oriented_side(F, scene.x1, scene.x2, scene.x1[:10], scene.x2[:10]).diagonal().all())
     reflected = 2 * e2 - scene.x2
     assert not bool(oriented_side(F, scene.x1, reflected, scene.x1[:10], scene.x2[:10]).diagonal().any())
+
+
+def test_the_view_that_sees_the_scene_larger_is_the_one_whose_patches_are_warped():
+    """A homography that doubles the scale from view i to view j (area x4) makes view j the one
+    that sees the scene larger; its inverse makes view i; a rotation by 30 degrees that shrinks by
+    10 % (area x0.81) leaves view i's patches to be warped."""
+    from torchsfm.sfm.view_pairs import second_sees_larger
+
+    points = torch.rand(50, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 400
+    zoom = torch.tensor([[2.0, 0.0, 10.0], [0.0, 2.0, -5.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    angle = torch.tensor(torch.pi / 6, dtype=torch.float64)
+    turn = torch.tensor([[0.9 * torch.cos(angle), -0.9 * torch.sin(angle), 0.0], [0.9 * torch.sin(angle), 0.9 * torch.cos(angle), 0.0],
+                         [0.0, 0.0, 1.0]], dtype=torch.float64)
+    assert second_sees_larger(zoom, points)
+    assert not second_sees_larger(torch.linalg.inv(zoom), points)
+    assert not second_sees_larger(turn, points)

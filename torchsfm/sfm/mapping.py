@@ -287,6 +287,14 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
             for b, (view, mine) in enumerate(zip(views, rows))]
 
 
+def strongest_registered_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches], view: int
+                              ) -> tuple[tuple[int, int], PairMatches] | None:
+    """``view``'s verified pair with most matches among those whose other view is registered,
+    or None."""
+    partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
+    return max(partners, key=lambda item: item[1].index1.numel()) if partners else None
+
+
 def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches], view: int, config: Config,
                    generator: torch.Generator) -> tuple[Tensor, Tensor, str] | str:
     """The pose of ``view`` — one that sees too few reconstructed points to be resected — from
@@ -300,10 +308,10 @@ def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches]
     stands if most of those points, and at least ``PAIR_POSE_MIN_POINTS``, reproject within the
     resection threshold. Returns (R (3, 3),
     t (3,), what was done) or why not."""
-    partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
-    if not partners:
+    strongest = strongest_registered_pair(model, pairs, view)
+    if strongest is None:
         return "no verified pair with a registered view"
-    (i, j), match = max(partners, key=lambda item: item[1].index1.numel())
+    (i, j), match = strongest
     other = i + j - view
     try:
         pose = estimate_relative_pose(model.corners[i][match.index1], model.corners[j][match.index2], model.K[i], model.K[j],
@@ -345,10 +353,10 @@ def pair_disagreement(model: MapperState, pairs: dict[tuple[int, int], PairMatch
     most verified matches must fit most of those matches within the same threshold. A widened
     threshold also admits a wrong pose that collects the points whose depth errors put them
     pixels off; the pair's matches, hundreds, verified on their own, do not move with the points."""
-    partners = [(key, match) for key, match in pairs.items() if view in key and bool(model.registered[sum(key) - view])]
-    if not partners:
+    strongest = strongest_registered_pair(model, pairs, view)
+    if strongest is None:
         return None
-    (i, j), match = max(partners, key=lambda item: item[1].index1.numel())
+    (i, j), match = strongest
     other = i + j - view
     (R_i, t_i), (R_j, t_j) = [(R, t) if v == view else (model.R[v], model.t[v]) for v in (i, j)]
     relative = R_j @ R_i.T

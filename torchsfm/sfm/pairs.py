@@ -140,14 +140,13 @@ def _best_partners(scores: Tensor, config: PairsConfig) -> set[tuple[int, int]]:
     return {(min(i, j), max(i, j)) for i in range(scores.shape[0]) for j in ranked[i].tolist() if j != i}
 
 
-def bridge_pairs(greys: Tensor, stranded: list[int], registered: list[int], config: PairsConfig) -> list[tuple[int, int]]:
+def bridge_pairs(features: CoarseFeatures, stranded: list[int], registered: list[int], config: PairsConfig) -> list[tuple[int, int]]:
     """View pairs (i < j) that may link each ``stranded`` view to the ``registered`` ones: its
     ``neighbours`` best-scoring registered partners by the coarse score
-    (:func:`mutual_best_counts`; wide baselines score low but still rank) of (V, 1, H, W) grey
-    images."""
+    (:func:`mutual_best_counts`; wide baselines score low but still rank) of the views' coarse
+    ``features``."""
     if not stranded or not registered:
         return []
-    features = coarse_features(greys, config)
     others = torch.tensor(registered)
     pairs = set()
     for view in stranded:

@@ -30,7 +30,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
-from torchsfm.sfm.pairs import bridge_pairs
+from torchsfm.sfm.pairs import bridge_pairs, coarse_features
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks
 from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
@@ -190,7 +190,17 @@ class RejectMovingObjects(ConfiguredStage):
         return state
 
 
-class RematchUnregistered(ConfiguredStage):
+class RetryStage(ConfiguredStage):
+    """A stage that runs ``retry`` (default: :class:`BuildTracks`, :class:`RejectMovingObjects`,
+    :class:`MapIncrementally` at their default settings) on changed pairs and keeps the better
+    model (:func:`_better_of`)."""
+
+    def __init__(self, retry: Pipeline | None = None, **sections) -> None:
+        super().__init__(**sections)
+        self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
+
+
+class RematchUnregistered(RetryStage):
     """When views stay unregistered although a verified pair links them to the model, or
     registered only at a widened resection threshold (``Reconstruction.loose_resections``)
     (``pairs.epipolar_matching``): the verified pairs of those views and of their partners (the
@@ -198,15 +208,10 @@ class RematchUnregistered(ConfiguredStage):
     bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
     run again; the model that registers more views, or as many with fewer loose resections, is
     kept. Costs nothing where every view registers at the threshold, or where the others form
-    separate groups. ``retry`` is the pipeline run again on the rematched pairs (default: the
-    default stages :class:`BuildTracks`, :class:`RejectMovingObjects`, :class:`MapIncrementally`
-    at their default settings)."""
+    separate groups. ``retry`` is the pipeline run again on the rematched pairs
+    (:class:`RetryStage`)."""
 
     SECTIONS = ("matching", "pairs", "fundamental")
-
-    def __init__(self, retry: Pipeline | None = None, **sections) -> None:
-        super().__init__(**sections)
-        self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
 
     def forward(self, state: ViewSet) -> ViewSet:
         first = state.reconstruction
@@ -223,7 +228,7 @@ class RematchUnregistered(ConfiguredStage):
         return _better_of(state, self.retry(replace(state, pairs={**state.pairs, **rematched})))
 
 
-class BridgeWithSift(ConfiguredStage):
+class BridgeWithSift(RetryStage):
     """When views stay out of the model (``pairs.sift_bridge``): the pairs that may link each of
     them to the registered views (:func:`~torchsfm.sfm.pairs.bridge_pairs`) get a homography
     from SIFT matches (:func:`~torchsfm.sfm.sift.sift_homographies`) in place of the coarse NCC
@@ -238,21 +243,20 @@ class BridgeWithSift(ConfiguredStage):
     and the tracks, the moving-object decision and the mapping run again; the model that
     registers more views is kept, and the stage repeats while the model grows (each view
     described once). SIFT only finds where to look: every match is still a Harris corner pair.
-    Costs nothing where every view registers. ``retry`` as for :class:`RematchUnregistered`."""
+    Costs nothing where every view registers. ``retry``: see :class:`RetryStage`."""
 
     SECTIONS = ("matching", "pairs", "fundamental", "lm", "reconstruction")
 
-    def __init__(self, retry: Pipeline | None = None, **sections) -> None:
-        super().__init__(**sections)
-        self.retry = retry if retry is not None else Pipeline(BuildTracks(), RejectMovingObjects(), MapIncrementally())
-
     def forward(self, state: ViewSet) -> ViewSet:
+        if len(state.reconstruction.view_indices) == len(state.images):
+            return state
+        features = coarse_features(state.greys, self.config.pairs)  # once: every round ranks partners by them
         described: dict[int, tuple[Tensor, Tensor]] = {}  # SIFT of the views described so far
         tried: set[tuple[int, int]] = set()
         while True:  # again while the model grows: the views it gained bring new partners
             registered = sorted(state.reconstruction.view_indices)
             stranded = sorted(set(range(len(state.images))) - set(registered))
-            candidates = [pair for pair in bridge_pairs(state.greys, stranded, registered, self.config.pairs) if pair not in tried]
+            candidates = [pair for pair in bridge_pairs(features, stranded, registered, self.config.pairs) if pair not in tried]
             if not candidates:
                 return state
             tried |= set(candidates)

@@ -49,8 +49,11 @@ def to_unit_float(image: Tensor) -> Tensor:
 
 def to_grey(image: Tensor) -> Tensor:
     """(3, H, W) or (1, H, W) uint8/float -> (1, H, W) float32 in [0, 1]."""
-    image = to_unit_float(image)
-    return rgb_to_grayscale(image) if image.shape[0] == 3 else image
+    if image.shape[0] == 1:
+        return to_unit_float(image)
+    if image.dtype == torch.uint8:  # weigh the colours first: one plane to divide, not three
+        return rgb_to_grayscale(image.float()) / 255.0
+    return rgb_to_grayscale(image.float())
 
 
 def is_grey_bytes(image: Tensor) -> bool:

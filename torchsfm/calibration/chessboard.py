@@ -29,6 +29,7 @@ from torch import Tensor
 
 from torchsfm.config import ChessboardConfig
 from torchsfm.errors import InputError
+from torchsfm.features.filters import sobel_gradients, sobel_second_derivatives, window_maximum
 from torchsfm.images import check_image, to_grey
 
 NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
@@ -58,11 +59,9 @@ def saddle_candidates(grey: Tensor, config: ChessboardConfig) -> tuple[Tensor, T
     sigma = config.sigma
     size = 2 * math.ceil(3 * sigma) + 1
     smooth = kornia.filters.gaussian_blur2d(grey[None], (size, size), (sigma, sigma))
-    second = kornia.filters.spatial_gradient(smooth, order=2, normalized=False)[:, 0]  # (1, 3, H, W): xx, xy, yy
-    response = (second[:, 1].square() - second[:, 0] * second[:, 2]).clamp_min(0)[0]
-    width = 2 * config.nms_radius + 1  # a square window's maximum, as a row's then a column's (separable: 2.4x faster)
-    peak = F.max_pool2d(F.max_pool2d(response[None, None], (1, width), stride=1, padding=(0, config.nms_radius)),
-                        (width, 1), stride=1, padding=(config.nms_radius, 0))[0, 0]
+    xx, xy, yy = sobel_second_derivatives(smooth[0, 0])
+    response = (xy.square() - xx * yy).clamp_min(0)
+    peak = window_maximum(response, config.nms_radius)
     keep = (response == peak) & (response > config.relative_threshold * response.max())
     y, x = torch.nonzero(keep, as_tuple=True)
     strength = response[y, x]
@@ -211,7 +210,7 @@ def refine_corners(grey: Tensor, corners: Tensor, half_window: int, iterations: 
     low = (corners.amin(0).floor().long() - margin).clamp_min(0)
     high = corners.amax(0).ceil().long() + margin + 1
     crop = grey[:, int(low[1]):int(high[1]), int(low[0]):int(high[0])]
-    gradients = kornia.filters.spatial_gradient(crop[None].double(), normalized=True)[0, 0]  # (2, h, w)
+    gradients = torch.stack(sobel_gradients(crop[0].double()))  # (2, h, w)
     corners = corners - low.to(corners.dtype)
     offsets = torch.arange(-half_window, half_window + 1, dtype=torch.float64)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")

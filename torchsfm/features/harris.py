@@ -14,11 +14,12 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as functional
-from kornia.filters import gaussian_blur2d, spatial_gradient
+from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
 from torchsfm.config import HarrisConfig
 from torchsfm.errors import InputError
+from torchsfm.features.filters import sobel_gradients, window_maximum
 
 
 @dataclass
@@ -58,8 +59,7 @@ def harris_response(image: Tensor, k: float = 0.04, window: int = 3) -> Tensor:
     chunk = max(1, RESPONSE_CHUNK_PIXELS // (image.shape[-2] * image.shape[-1]))
     if image.shape[0] > chunk:
         return torch.cat([harris_response(image[first:first + chunk], k, window) for first in range(0, image.shape[0], chunk)])
-    gradients = spatial_gradient(image, mode="sobel")  # (B, 1, 2, H, W)
-    dx, dy = gradients[:, :, 0], gradients[:, :, 1]
+    dx, dy = sobel_gradients(image)  # (B, 1, H, W) each
     sigma = gaussian_sigma(window)
     products = gaussian_blur2d(torch.cat([dx * dx, dy * dy, dx * dy], dim=1), window, (sigma, sigma))
     xx, yy, xy = products[:, 0:1], products[:, 1:2], products[:, 2:3]
@@ -146,7 +146,7 @@ def detect_corners(image: Tensor, config: HarrisConfig | None = None) -> Corners
                          f"(harris.border) inside the image, so each side needs {smallest} px")
     response = harris_response(image, config.k, config.window)
     half = config.window // 2
-    is_peak = response == functional.max_pool2d(response, config.window, stride=1, padding=half)
+    is_peak = response == window_maximum(response, half)
     border = max(config.border, half)
     inside = torch.zeros_like(is_peak)
     inside[..., border:H - border, border:W - border] = True

@@ -78,3 +78,12 @@ def reduce_image(image: Tensor, factor: int) -> Tensor:
         return image
     reduced = functional.avg_pool2d(to_unit_float(image)[None], factor)[0]
     return (reduced * 255).round().to(torch.uint8) if image.dtype == torch.uint8 else reduced.to(image.dtype)
+
+
+def size_groups(images: list[Tensor]) -> list[list[int]]:
+    """The indices of (C, H, W) images grouped by size (H, W), in order of first appearance:
+    images of one size stack into a batch."""
+    groups: dict[tuple[int, int], list[int]] = {}
+    for v, image in enumerate(images):
+        groups.setdefault(tuple(image.shape[-2:]), []).append(v)
+    return list(groups.values())

@@ -48,6 +48,21 @@ def test_related_views_score_higher_than_an_unrelated_one():
     assert torch.equal(scores, scores.T)
 
 
+def test_views_of_different_sizes_are_described_as_each_alone():
+    """A landscape view and a portrait one (the same view turned a quarter): each view's coarse
+    corners and patches are the ones it gets on its own (one reduction factor: the largest side
+    is the same)."""
+    grey = _bundled_greys()[0]
+    portrait = grey.transpose(-1, -2).flip(-1)
+    together = coarse_features([grey, portrait], PairsConfig())
+    for v, image in enumerate([grey, portrait]):
+        alone = coarse_features([image], PairsConfig())
+        count = int(alone.valid[0].sum())
+        assert int(together.valid[v].sum()) == count
+        torch.testing.assert_close(together.points[v, :count], alone.points[0, :count], rtol=0, atol=0)
+        torch.testing.assert_close(together.patches[v, :count], alone.patches[0, :count], rtol=0, atol=0)
+
+
 def test_predicted_homography_follows_a_large_shift():
     """The second view shifted by (120, -40) px: the coarse homography predicts the shift within
     2 px over the image."""

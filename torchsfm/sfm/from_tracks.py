@@ -223,7 +223,9 @@ class ReconstructObjects(ConfiguredStage):
                 body.model = reconstruct_tracks(pixels[:, long_enough], state.K, visible[:, long_enough], config=self.config,
                                                 generator=state.generator)
                 body.model.image_names = [state.names[v] for v in body.model.view_indices]
-                body.model.image_sizes = state.reconstruction.image_sizes[:1].expand(body.model.num_views, 2).clone()
+                scene = state.reconstruction  # each view's size as the scene has it (a view it lacks: its first view's)
+                size_of = dict(zip(scene.view_indices, scene.image_sizes.tolist()))
+                body.model.image_sizes = torch.tensor([size_of.get(v, scene.image_sizes[0].tolist()) for v in body.model.view_indices])
                 body.model.colors[:] = torch.tensor(MOTION_COLOURS[label % len(MOTION_COLOURS)], dtype=torch.uint8)
             except TorchSfmError as error:
                 body.reason = f"no model from its {count} tracks: {error}"

@@ -50,9 +50,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     with the reason and the others are reconstructed without it.
 
     Args:
-        images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1],
-            all the same size.
-        K: intrinsics (3, 3) shared by all views, or (V, 3, 3); None: unknown — the principal
+        images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1];
+            of different sizes only with K (portrait and landscape shots, several cameras).
+        K: intrinsics (3, 3) shared by all views (of one size), or (V, 3, 3); None: unknown — the principal
             point is taken at the image centre, the focal length (shared by all views) is the
             one the files' EXIF records where every image has one and they agree, else it is
             estimated from the verified pairs' fundamental matrices (Mendonça & Cipolla, searched
@@ -87,7 +87,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise InputError("distortion needs K: give both, or neither")
         K = torch.eye(3, dtype=torch.float64)  # replaced once the image size is known
     K = K.double()
-    K = K.expand(len(images), 3, 3) if K.dim() == 2 else K
+    one_K = K.dim() == 2
+    K = K.expand(len(images), 3, 3) if one_K else K
     if K.shape != (len(images), 3, 3):
         raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
     check_intrinsics(K=K)
@@ -116,14 +117,18 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         kept.append(v)
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
+    sizes = sorted({tuple(image.shape[-2:]) for image in loaded})
+    if len(sizes) > 1 and one_K and not estimate_focal:
+        raise InputError(f"one K for images of different sizes ({', '.join(f'{w}x{h}' for h, w in sizes)} px): give each "
+                         f"view's K, (V, 3, 3) (a camera turned to portrait has its K turned with it)")
     config = config or Config()
     if moving_objects is not None:
         if moving_objects not in ("reject", "reconstruct"):
             raise InputError(f"moving_objects must be 'reject' or 'reconstruct', got {moving_objects!r}")
         config = replace(config, moving_objects=replace(config.moving_objects, enabled=True,
                                                         reconstruct_objects=moving_objects == "reconstruct"))
-    factor = reduction_factor(loaded[0].shape[-2:], config.reconstruction.max_image_size)
-    input_size = (loaded[0].shape[-1], loaded[0].shape[-2])  # (W, H)
+    factor = reduction_factor(max((image.shape[-2:] for image in loaded), key=max), config.reconstruction.max_image_size)
+    input_sizes = {v: (image.shape[-1], image.shape[-2]) for v, image in zip(kept, loaded)}  # (W, H) by input index
     if factor > 1:  # larger images: detection and matching at the working resolution
         loaded = [reduce_image(image, factor) for image in loaded]
         K = K if estimate_focal else rescale_intrinsics(K, 1 / factor)
@@ -147,7 +152,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     model.moving_rejections_per_view = {kept[v]: count for v, count in model.moving_rejections_per_view.items()}
     if factor > 1:
         for part in (model, *model.other_models, *bodies):
-            to_input_resolution(part, factor, input_size)
+            to_input_resolution(part, factor, [input_sizes[v] for v in part.view_indices])
         if model.segmented_tracks is not None:
             pixels, visible, labels = model.segmented_tracks
             model.segmented_tracks = (rescale_pixels(pixels, factor), visible, labels)
@@ -160,9 +165,10 @@ def reduction_factor(size: tuple[int, int], max_size: int) -> int:
     return max(1, -(-max(size) // max_size)) if max_size else 1
 
 
-def to_input_resolution(model: Reconstruction, factor: int, size: tuple[int, int]) -> None:
+def to_input_resolution(model: Reconstruction, factor: int, sizes: list[tuple[int, int]]) -> None:
     """A model computed on images reduced by ``factor``, in place: its intrinsics and keypoints
-    in pixels of the input images of ``size`` (W, H); poses and points are unchanged."""
+    in pixels of the input images of ``sizes`` (W, H), one per view of the model; poses and
+    points are unchanged."""
     model.cameras = replace(model.cameras, K=rescale_intrinsics(model.cameras.K, factor))
     model.keypoints = rescale_pixels(model.keypoints, factor)
-    model.image_sizes = torch.tensor([list(size)] * model.image_sizes.shape[0], dtype=model.image_sizes.dtype)
+    model.image_sizes = torch.tensor([list(size) for size in sizes], dtype=model.image_sizes.dtype)

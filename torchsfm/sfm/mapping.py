@@ -415,8 +415,8 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     for _, unregistered in reversed(grown):  # the largest model's reasons last: they stand
         reasons.update(unregistered)
     colours = [colour if colour is not None else image for colour, image in zip(state.colours or [None] * V, state.images)]
-    size = tuple(state.images[0].shape[-2:]) if state.images else None
-    built = [build_reconstruction(model, colours or None, size, state.names, {}, {}) for model, _ in grown]
+    sizes = [tuple(image.shape[-2:]) for image in state.images] if state.images else None
+    built = [build_reconstruction(model, colours or None, sizes, state.names, {}, {}) for model, _ in grown]
     primary = built[0]
     for k, other in enumerate(built[1:], start=1):
         for view in other.view_indices:
@@ -547,12 +547,12 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     return model, unregistered
 
 
-def build_reconstruction(model: MapperState, colours: list[Tensor] | None, size: tuple[int, int] | None, names: list[str],
+def build_reconstruction(model: MapperState, colours: list[Tensor] | None, sizes: list[tuple[int, int]] | None, names: list[str],
                          unregistered: dict[int, str], timings: dict[str, float]) -> Reconstruction:
     """The model's registered views and its points seen in ``min_track_views`` inlier views of
-    images of ``size`` (H, W), coloured from each view's image in ``colours`` (any resolution:
-    sampled at the rescaled pixel; None: tracks without images, every point grey, the size
-    that of the pixels' extent)."""
+    images of ``sizes`` (H, W) per view, coloured from each view's image in ``colours`` (any
+    resolution: sampled at the rescaled pixel; None: tracks without images, every point grey,
+    every size that of the pixels' extent)."""
     errors = model.observation_errors()
     tracks = model.tracks
     keep = errors < model.config.reconstruction.max_reprojection_error
@@ -566,20 +566,20 @@ def build_reconstruction(model: MapperState, colours: list[Tensor] | None, size:
     keep &= point_of[tracks.track] >= 0
     first_observation = torch.full((tracks.num_tracks,), tracks.view.numel(), dtype=torch.long).scatter_reduce(
         0, tracks.track[keep], torch.nonzero(keep).flatten(), "amin")[point_tracks]
-    H, W = size if size is not None else (int(model.pixels[:, 1].max()) + 1, int(model.pixels[:, 0].max()) + 1)
+    sizes = sizes or [(int(model.pixels[:, 1].max()) + 1, int(model.pixels[:, 0].max()) + 1)] * len(names)
     colour_view = tracks.view[first_observation]
     point_colours = torch.full((point_tracks.numel(), 3), 128, dtype=torch.uint8)
     for view in torch.unique(colour_view).tolist() if colours else []:  # one gather per view: no stack of every image
         mine = colour_view == view
         source = colours[view]
-        pixel = rescale_pixels(model.raw_pixels[first_observation[mine]], source.shape[-1] / W).round().long()
+        pixel = rescale_pixels(model.raw_pixels[first_observation[mine]], source.shape[-1] / sizes[view][1]).round().long()
         pixel = torch.minimum(pixel.clamp_min(0), torch.tensor([source.shape[-1] - 1, source.shape[-2] - 1]))
         colour = source.expand(3, -1, -1)[:, pixel[:, 1], pixel[:, 0]].T
         point_colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
     return Reconstruction(
         cameras=Camera(model.K[views], model.R[views], model.t[views]),
         image_names=[names[v] for v in views.tolist()],
-        image_sizes=torch.tensor([[W, H]] * views.numel()),
+        image_sizes=torch.tensor([[sizes[v][1], sizes[v][0]] for v in views.tolist()]),
         points3d=model.points[point_tracks],
         colors=point_colours,
         observation_points=point_of[tracks.track[keep]],

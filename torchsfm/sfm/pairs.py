@@ -25,7 +25,7 @@ from torch.nn import functional
 
 from torchsfm.config import HarrisConfig, PairsConfig, RansacConfig
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import to_unit_float
+from torchsfm.images import size_groups, to_unit_float
 from torchsfm.matching.ncc import extract_patches
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ragged import pad_rows
@@ -49,20 +49,27 @@ class CoarseFeatures:
     valid: Tensor
 
 
-def coarse_features(greys: Tensor, config: PairsConfig) -> CoarseFeatures:
-    """Harris corners and NCC patches of (V, 1, H, W) grey images (uint8 or float in [0, 1])
-    reduced to ``coarse_size`` (a few views at a time: no full-resolution float copy of them all)."""
-    H, W = greys.shape[-2:]
-    factor = max(1, round(max(H, W) / config.coarse_size))
-    small = torch.cat([functional.avg_pool2d(to_unit_float(greys[first:first + 8]), factor)
-                       for first in range(0, greys.shape[0], 8)])
-    corners = detect_corners(small, HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1))
-    patches = []
-    for v in range(greys.shape[0]):
-        patches.append(extract_patches(small[v], corners.positions[v].double(), config.patch_half_size))
-    patches = torch.stack(patches) * corners.valid[..., None]
-    points = (corners.positions.double() + 0.5) * factor - 0.5  # pixel centres of the reduced image
-    return CoarseFeatures(points=points, patches=patches, valid=corners.valid)
+def coarse_features(greys: list[Tensor], config: PairsConfig) -> CoarseFeatures:
+    """Harris corners and NCC patches of (1, H_v, W_v) grey images (uint8 or float in [0, 1])
+    reduced by one factor, the one that brings the largest to ``coarse_size`` (so that every view
+    is seen at one scale), a few views of one size at a time (no full-resolution float copy of
+    them all)."""
+    factor = max(1, round(max(max(grey.shape[-2:]) for grey in greys) / config.coarse_size))
+    harris = HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1)
+    positions: dict[int, Tensor] = {}
+    patches: dict[int, Tensor] = {}
+    for group in size_groups(greys):
+        for first in range(0, len(group), 8):
+            views = group[first:first + 8]
+            small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
+            corners = detect_corners(small, harris)
+            for b, v in enumerate(views):
+                positions[v] = corners.of_image(b).double()
+                patches[v] = extract_patches(small[b], positions[v], config.patch_half_size)
+    views = range(len(greys))
+    patches_padded, valid = pad_rows([patches[v] for v in views])
+    points = (pad_rows([positions[v] for v in views])[0] + 0.5) * factor - 0.5  # pixel centres of the reduced image
+    return CoarseFeatures(points=points, patches=patches_padded, valid=valid)
 
 
 def _mutual_best(ncc: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
@@ -156,7 +163,7 @@ def bridge_pairs(features: CoarseFeatures, stranded: list[int], registered: list
     return sorted(pairs)
 
 
-def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generator | None = None,
+def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Generator | None = None,
                    guided: bool = False) -> dict[tuple[int, int], Tensor | None]:
     """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
     coarse features), each with its coarse homography (:func:`coarse_homographies`) where
@@ -164,11 +171,11 @@ def pairs_to_match(greys: Tensor, config: PairsConfig, generator: torch.Generato
     homographies are fitted once, for the selection and the guidance alike."""
     features = coarse_features(greys, config)
     scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
-    considered = considered_pairs(scores, config, greys.shape[0])
+    considered = considered_pairs(scores, config, len(greys))
     homographies, inliers = {}, None
     if guided or scores is not None:
         homographies, inliers = coarse_homographies(features, considered, config, generator)
-    return {pair: homographies.get(pair) if guided else None for pair in select_pairs(scores, config, greys.shape[0], inliers)}
+    return {pair: homographies.get(pair) if guided else None for pair in select_pairs(scores, config, len(greys), inliers)}
 
 
 def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,

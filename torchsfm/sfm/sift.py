@@ -31,7 +31,7 @@ class DetectSiftFeatures(ConfiguredStage):
     SECTIONS = ("pairs",)
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
+        state.greys = [to_grey_bytes(image) for image in state.images]
         state.report(f"SIFT features of {len(state.images)} views")
         state.raw, state.descriptors = sift_features(state.greys, self.config.pairs.sift_features)
         state.corners = [undistort_points(raw, state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
@@ -56,7 +56,7 @@ class MatchSiftFeatures(ConfiguredStage):
         return state
 
 
-def sift_features(greys: Tensor, num_features: int) -> tuple[list[Tensor], list[Tensor]]:
+def sift_features(greys: list[Tensor], num_features: int) -> tuple[list[Tensor], list[Tensor]]:
     """SIFT keypoint centres (K_v, 2) float64 pixels and descriptors (K_v, 128) of every view of
     (V, 1, H, W) grey images, one view at a time."""
     sift = SIFTFeature(num_features=num_features)
@@ -69,7 +69,7 @@ def sift_features(greys: Tensor, num_features: int) -> tuple[list[Tensor], list[
     return points, descriptors
 
 
-def sift_homographies(greys: Tensor, pairs: list[tuple[int, int]], config: PairsConfig,
+def sift_homographies(greys: list[Tensor], pairs: list[tuple[int, int]], config: PairsConfig,
                       generator: torch.Generator | None = None, described: dict[int, tuple[Tensor, Tensor]] | None = None
                       ) -> dict[tuple[int, int], Tensor]:
     """A homography (3, 3) mapping view i's pixels to view j's for each view pair (i, j) of
@@ -80,7 +80,7 @@ def sift_homographies(greys: Tensor, pairs: list[tuple[int, int]], config: Pairs
     described = {} if described is None else described
     new = sorted({v for pair in pairs for v in pair} - set(described))
     if new:
-        described.update(zip(new, zip(*sift_features(greys[new], config.sift_features))))
+        described.update(zip(new, zip(*sift_features([greys[v] for v in new], config.sift_features))))
     matches = []
     for i, j in pairs:
         (points_i, descriptors_i), (points_j, descriptors_j) = described[i], described[j]

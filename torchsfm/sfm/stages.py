@@ -43,7 +43,7 @@ class ViewSet:
     """The state the N-view stages pass along (each fills its own fields).
 
     Fields:
-        images: V decoded images (3 or 1, H, W), one size.
+        images: V decoded images (3 or 1, H_v, W_v) (one size where K is estimated).
         colours: per view, where its image holds only the grey of a colour file (to bound
             memory), a reduced colour copy the points take their colours from; else None.
         K: (V, 3, 3) intrinsics (replaced by :class:`SelfCalibrate` when ``estimate_focal``).
@@ -52,7 +52,7 @@ class ViewSet:
         estimate_focal: K is a placeholder to be estimated; exif_focal: the focal length (px)
             every image's EXIF records, if they agree (the estimate's start, refined later).
         generator: the random source of every RANSAC; report: progress messages.
-        greys: (V, 1, H, W) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
+        greys: V (1, H_v, W_v) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
             the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``);
             putative: matched corner indices (index1, index2) per view pair; homographies: each
             matched pair's coarse homography (or None); pairs: verified matches;
@@ -71,7 +71,7 @@ class ViewSet:
     generator: torch.Generator = field(default_factory=lambda: torch.Generator().manual_seed(0))
     report: Progress = field(default=lambda message: None)
     colours: list[Tensor | None] | None = None
-    greys: Tensor | None = None
+    greys: list[Tensor] | None = None
     raw: list[Tensor] | None = None
     corners: list[Tensor] | None = None
     putative: dict[tuple[int, int], tuple[Tensor, Tensor]] | None = None
@@ -90,13 +90,16 @@ class ViewSet:
     def of(cls, images: list[Tensor], K: Tensor, *, distortion: Tensor | None = None, names: list[str] | None = None,
            generator: torch.Generator | None = None, progress: Progress | None = None,
            estimate_focal: bool = False, exif_focal: float | None = None, colours: list[Tensor | None] | None = None) -> ViewSet:
-        """A state for decoded images of one size with K (3, 3) or (V, 3, 3)."""
+        """A state for decoded images with K (3, 3) or (V, 3, 3). Images of different sizes (a
+        photo set with portrait and landscape shots, several cameras) need their K: a focal
+        length is estimated (``estimate_focal``) for one camera, with one image size."""
         V = len(images)
         for v, image in enumerate(images):
             check_image(image, f"image {v}")
-        sizes = {tuple(image.shape[-2:]) for image in images}
-        if len(sizes) != 1:
-            raise InputError(f"all images must be of one size, got {sorted({tuple(i.shape) for i in images})}")
+        sizes = sorted({tuple(image.shape[-2:]) for image in images})
+        if len(sizes) != 1 and estimate_focal:
+            raise InputError(f"images of different sizes ({', '.join(f'{w}x{h}' for h, w in sizes)} px) need their "
+                             f"intrinsics K: without K one camera, with one image size, is assumed")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
@@ -111,7 +114,7 @@ class DetectCorners(ConfiguredStage):
     SECTIONS = ("harris",)
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.greys = torch.stack([to_grey_bytes(image) for image in state.images])
+        state.greys = [to_grey_bytes(image) for image in state.images]
         for v, image in enumerate(state.images):  # a grey image becomes a view of its grey: one copy in memory, not two
             if is_grey_bytes(image):
                 state.images[v] = state.greys[v].expand_as(image)

@@ -14,7 +14,7 @@ from torchsfm.config import Config, HarrisConfig, RansacConfig
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import to_unit_float
+from torchsfm.images import size_groups, to_unit_float
 from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_candidates, match_corners
@@ -42,17 +42,21 @@ class PairMatches:
     F: Tensor
 
 
-def detect(greys: Tensor, config: HarrisConfig) -> list[Tensor]:
-    """Corners of every view of (V, 1, H, W) grey images (uint8 or float in [0, 1]), detected ``DETECTION_CHUNK`` views per batched call (the Harris
-    response's intermediate maps of a whole video would not fit in memory at once)."""
-    corners = []
-    for first in range(0, greys.shape[0], DETECTION_CHUNK):
-        detected = detect_corners(to_unit_float(greys[first:first + DETECTION_CHUNK]), config)
-        corners += [detected.of_image(b) for b in range(detected.valid.shape[0])]
-    return corners
+def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
+    """Corners of every view of (1, H_v, W_v) grey images (uint8 or float in [0, 1]), detected
+    ``DETECTION_CHUNK`` views of one size per batched call (the Harris response's intermediate
+    maps of a whole video would not fit in memory at once)."""
+    corners: dict[int, Tensor] = {}
+    for group in size_groups(greys):
+        for first in range(0, len(group), DETECTION_CHUNK):
+            views = group[first:first + DETECTION_CHUNK]
+            detected = detect_corners(to_unit_float(torch.stack([greys[v] for v in views])), config)
+            for b, v in enumerate(views):
+                corners[v] = detected.of_image(b)
+    return [corners[v] for v in range(len(greys))]
 
 
-def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress
+def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress
                       ) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
     """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
     (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
@@ -65,7 +69,7 @@ def putative_matches(greys: Tensor, raw: list[Tensor], config: Config, generator
     return guided_matches(greys, raw, homographies, config, report), homographies
 
 
-def guided_matches(greys: Tensor, raw: list[Tensor], homographies: dict[tuple[int, int], Tensor | None], config: Config,
+def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tuple[int, int], Tensor | None], config: Config,
                    report: Progress) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
     """NCC + strength-measure matches (index1, index2) of every view pair (i, j) of
     ``homographies``, the search disc centred on the pair's homography's prediction where it
@@ -93,7 +97,7 @@ def second_sees_larger(H: Tensor, points: Tensor) -> bool:
     return float(torch.linalg.det(homography_jacobian(H, points.double())).median()) > 1
 
 
-def _match_along(greys: Tensor, raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config) -> tuple[Tensor, Tensor]:
+def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config) -> tuple[Tensor, Tensor]:
     """Matched corner indices of views i and j, guided by the homography H (3, 3) from i to j
     (or None) as :func:`guided_matches` says."""
     predicted = warp = None
@@ -107,7 +111,7 @@ def _match_along(greys: Tensor, raw: list[Tensor], i: int, j: int, H: Tensor | N
     return matches.index1, matches.index2
 
 
-def epipolar_matches(greys: Tensor, raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],
+def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],
                      homographies: dict[tuple[int, int], Tensor | None], config: Config) -> dict[tuple[int, int], PairMatches]:
     """Verified pairs matched again, guided by their F: each corner's candidates are the other
     view's corners in its epipolar band — Sampson distance under F (on the undistorted

@@ -32,16 +32,23 @@ def test_misclassification_matches_labels_one_to_one():
 
 @pytest.mark.parametrize("objects", [1, 2, 3])
 def test_segments_every_object_and_finds_their_number(objects):
-    """0.5 px noise, 10 % outlier tracks: the number of motions is found, the static scene is
-    label 0, and at most 2 % of the inlier tracks are misclassified."""
+    """0.5 px noise, 10 % outlier tracks, five seeds of the hypotheses: the number of motions is
+    found in 4 of 5 runs at least (measured over ten seeds: 28 of the 30 runs of 1-3 objects);
+    in those the static scene is label 0, at most 2 % of the inlier tracks are misclassified, and
+    every motion's robust residual is within 3x the noise (measured 0.43-0.6 px)."""
     data = scene(4, objects)
-    result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
     inliers = data.labels >= 0
-    assert result.num_motions == objects + 1
-    assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
-    assert float((result.labels[data.labels == 0] == 0).double().mean()) >= 0.98
-    assert result.sizes.shape == result.coverage.shape == (objects + 1,)
-    assert bool((result.residuals <= 1.5).all()), result.residuals  # 3x the 0.5 px noise; measured 0.43-1.09 px (outliers absorbed)
+    found = 0
+    for seed in range(5):
+        result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(seed))
+        if result.num_motions != objects + 1:
+            continue
+        found += 1
+        assert misclassification(result.labels[inliers], data.labels[inliers]) <= 0.02
+        assert float((result.labels[data.labels == 0] == 0).double().mean()) >= 0.98
+        assert result.sizes.shape == result.coverage.shape == (objects + 1,)
+        assert bool((result.residuals <= 1.5).all()), result.residuals
+    assert found >= 4
 
 
 def test_given_number_of_motions_is_used():

@@ -1,7 +1,10 @@
+import collections
+import itertools
+
 import pytest
 import torch
 
-from torchsfm.robust.samplers import SAMPLERS, BucketedSampler
+from torchsfm.robust.samplers import SAMPLERS, BucketedSampler, draws_without_replacement
 
 
 def _grid_points(n=400, seed=0):
@@ -61,3 +64,33 @@ def test_sampling_is_deterministic_given_a_seed():
     a = sampler.sample(64, 8, torch.Generator().manual_seed(5))
     b = sampler.sample(64, 8, torch.Generator().manual_seed(5))
     assert torch.equal(a, b)
+
+
+def _sequential_law(weights: torch.Tensor, count: int) -> dict[tuple[int, ...], float]:
+    """Probability of every ordered draw of ``count`` distinct indices, each ∝ its weight among
+    the remaining."""
+    law = {}
+    for order in itertools.permutations(range(weights.numel()), count):
+        probability, left = 1.0, float(weights.sum())
+        for index in order:
+            probability *= float(weights[index]) / left
+            left -= float(weights[index])
+        law[order] = probability
+    return law
+
+
+@pytest.mark.parametrize("weights, count", [([5.0, 3.0, 1.0, 1.0], 2),  # most rows complete in their first draws
+                                            ([100.0, 100.0, 1e-3, 1e-3, 1e-3], 3),  # most rows go on without replacement
+                                            ([1.0, 2.0, 3.0, 4.0, 5.0, 6.0], 4)])
+def test_draws_without_replacement_follow_the_sequential_law(weights, count):
+    """200 000 rows: every ordered draw's frequency within 5 standard errors of its probability
+    (sequential draws, each ∝ its weight among the remaining: torch.multinomial's law)."""
+    rows = 200_000
+    weights = torch.tensor(weights, dtype=torch.float64)
+    drawn = draws_without_replacement(weights.expand(rows, -1).contiguous(), count, torch.Generator().manual_seed(0))
+    assert drawn.shape == (rows, count)
+    assert bool((drawn.sort(1).values.diff(dim=1) > 0).all())  # distinct in every row
+    frequency = collections.Counter(map(tuple, drawn.tolist()))
+    for order, probability in _sequential_law(weights, count).items():
+        error = (probability * (1 - probability) / rows) ** 0.5
+        assert abs(frequency[order] / rows - probability) <= 5 * error + 1e-9, order

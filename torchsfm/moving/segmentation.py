@@ -59,7 +59,9 @@ from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.static_tracks import rms_bound, rigid_group
 from torchsfm.moving.track_input import check_tracks
-from torchsfm.robust.samplers import resolve_generator
+from torchsfm.robust.models import FundamentalModel
+from torchsfm.robust.ransac import ransac
+from torchsfm.robust.samplers import draws_without_replacement, resolve_generator
 
 SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
@@ -78,8 +80,9 @@ class MotionSegmentation:
         sizes: (num_motions,) tracks per label 0..k.
         coverage: (num_motions,) grid cells (of 64) each label's tracks cover over all frames.
         residuals: (num_motions,) how rigid each label's tracks are: the median over its tracks
-            of their RMS Sampson distance (pixels) to one F per frame pair fitted to all of them
-            (:func:`motion_residuals`); NaN for a label too small to fit.
+            of their RMS Sampson distance (pixels) to one F per frame pair fitted from RANSAC's
+            inliers (:func:`motion_residuals`: tracks the clustering let in by mistake neither
+            pull the fit nor set the median); NaN for a label too small to fit.
         eigenvalues: (pieces,) leading eigenvalues of the normalized affinity.
         affinity: (n, n) the sparsified symmetric affinity the clustering used, over the
             ``clustered`` (n,) tracks (input indices).
@@ -158,12 +161,12 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     if num_motions is None:
         labels = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
     num_motions = int(labels.max()) + 1
-    assigned = labels[index]
-    sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
     if left_out.numel():
         labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)
+    assigned = labels[index]
+    sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
-    residuals = motion_residuals(tracks, visible, members, frame_pairs(visible))
+    residuals = motion_residuals(tracks, visible, members, frame_pairs(visible), generator)
     return MotionSegmentation(labels=labels, num_motions=num_motions, sizes=sizes,
                               coverage=grid_coverage(tracks, visible, labels, num_motions), residuals=residuals,
                               eigenvalues=eigenvalues, affinity=affinity, clustered=index, pieces=piece_of)
@@ -316,7 +319,7 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
     if guide is not None:
         weight = torch.where(seen_in_all, guide[seeds], 0.0) + 1e-9 * seen_in_all  # too few similar: uniform
         weight[rows, seeds] = 0.0
-        drawn = torch.multinomial(weight + 1e-30, size - 1, generator=generator)
+        drawn = draws_without_replacement(weight + 1e-30, size - 1, generator)
         sample = torch.cat([seeds[:, None], drawn], 1)
         return frames, sample, seen_in_all.gather(1, sample).all(1)
     start = tracks[frames[:, 0]]  # (H, N, 2)
@@ -608,14 +611,16 @@ def frame_pairs(visible: Tensor, count: int | None = None) -> Tensor:
 
 
 def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor,
-                    model: str = "fundamental") -> tuple[Tensor, Tensor]:
+                    model: str = "fundamental", generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
     """Every track's RMS distance (pixels) to one two-view model per frame pair fitted to each of
     C track sets: (F, N, 2) tracks, (F, N) visibility, (C, N) bool members, (P, 2) frame pairs ->
     (C, N) RMS and (C, N) bool where defined (the track seen in a pair the set could fit). The
     ``model`` is ``fundamental`` (8-point, Sampson distance) or ``homography`` (DLT, transfer
     distance: a plane, or a scene without parallax). A least-trimmed-squares fit (``REFITS``
     refits on the half of the set with the smallest residuals, so up to half of it may be
-    strays)."""
+    strays), from all the set's tracks — or, given a ``generator`` (``fundamental`` only), from
+    each pair's RANSAC inliers (``FundamentalConfig().ransac``): gross strays then cannot pull
+    the first fit away."""
     fit, distance = PAIR_MODELS[model]
     a, b = pairs[:, 0], pairs[:, 1]
     x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
@@ -625,6 +630,8 @@ def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Ten
     usable = weights.sum(-1) >= SAMPLE_SIZE  # (C, P)
     C = members.shape[0]
     x1, x2 = x1.expand(C, -1, -1, -1), x2.expand(C, -1, -1, -1)
+    if generator is not None and model == "fundamental":
+        weights = ransac_inliers(x1, x2, seen, generator).to(tracks.dtype)
     for _ in range(REFITS + 1):
         residual = distance(fit(x1, x2, torch.where(usable[..., None], weights, 1.0)), x1, x2)  # (C, P, N)
         half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, P)
@@ -635,15 +642,27 @@ def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Ten
     return (squares / valid.sum(1).clamp_min(1)).sqrt(), valid.any(1)
 
 
+def ransac_inliers(x1: Tensor, x2: Tensor, seen: Tensor, generator: torch.Generator) -> Tensor:
+    """(C, P, N) bool: the inliers of one RANSAC fundamental matrix (the project's defaults) per
+    track set and frame pair, among the ``seen`` (C, P, N) tracks of (C, P, N, 2) positions x1,
+    x2; all ``seen`` where RANSAC finds none."""
+    C, P, N = seen.shape
+    data = torch.cat([x1, x2], -1).reshape(C * P, N, 4)
+    valid = seen.reshape(C * P, N)
+    found = ransac(FundamentalModel(data, valid), data, FundamentalConfig().ransac, valid=valid, generator=generator)
+    return torch.where(found.success[:, None], found.inlier_mask, valid).reshape(C, P, N)
+
+
 PAIR_MODELS = {
     "fundamental": (eight_point, lambda F, x1, x2: sampson_error(F, x1, x2).sqrt()),
     "homography": (homography_dlt, lambda G, x1, x2: transfer_error(G, x1, x2).sqrt()),
 }
 
 
-def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+def motion_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor,
+                     generator: torch.Generator | None = None) -> Tensor:
     """How well one rigid motion explains each of C track sets: (C,) median over each set's
-    tracks of their RMS Sampson distance (:func:`track_residuals`); NaN where a set has fewer than
-    8 tracks in every pair."""
-    rms, judged = track_residuals(tracks, visible, members, pairs)
+    tracks of their RMS Sampson distance (:func:`track_residuals`, from RANSAC's inliers given a
+    ``generator``); NaN where a set has fewer than 8 tracks in every pair."""
+    rms, judged = track_residuals(tracks, visible, members, pairs, generator=generator)
     return torch.where(judged & members, rms, torch.nan).nanmedian(-1).values

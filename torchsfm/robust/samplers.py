@@ -10,7 +10,6 @@ import torch
 from torch import Tensor
 
 
-
 def resolve_generator(generator: torch.Generator | None, device: torch.device | str = "cpu") -> torch.Generator:
     """The one randomness policy: the caller's generator, or one seeded with 0 (reproducible)."""
     return generator if generator is not None else torch.Generator(device=device).manual_seed(0)
@@ -24,6 +23,35 @@ def _weighted_top_k(weights: Tensor, k: int, generator: torch.Generator | None) 
     """
     u = torch.rand(weights.shape, generator=generator, dtype=torch.float32, device=weights.device)
     return torch.topk(torch.log(u.clamp_min(1e-30)) / weights, k, dim=-1).indices
+
+
+def draws_without_replacement(weights: Tensor, count: int, generator: torch.Generator | None) -> Tensor:
+    """Indices of ``count`` draws without replacement from each row of (R, M) positive weights,
+    each ∝ its weight among the remaining (``torch.multinomial`` without replacement): (R, count).
+
+    Draws with replacement where each repeat is discarded have the same law — a draw conditioned
+    on being new is ∝ the remaining weights — and cost a tenth as much (one binary search per
+    draw, not a pass over the row). Each row draws 2 ``count`` so; a row that sees fewer than
+    ``count`` distinct indices among them (weight on a few entries) goes on from the ones it has,
+    without replacement over the rest.
+    """
+    R, M = weights.shape
+    draws = torch.multinomial(weights, 2 * count, replacement=True, generator=generator)  # (R, 2 count)
+    new = ~torch.tril(draws[:, :, None] == draws[:, None, :], diagonal=-1).any(2)  # not a repeat of an earlier draw
+    rank = new.cumsum(1)
+    position = torch.arange(2 * count, device=weights.device).expand(R, -1)
+    first = torch.where(new & (rank <= count), position, 2 * count).sort(1).values[:, :count]  # the first new draws, in order
+    chosen = draws.gather(1, first.clamp_max(2 * count - 1))
+    short = torch.nonzero(rank[:, -1] < count).flatten()
+    if short.numel():  # go on without replacement from the distinct draws each short row holds
+        have = rank[short, -1]  # (S,)
+        held = first[short] < 2 * count  # (S, count): entries of ``chosen`` that are draws
+        rows = torch.arange(short.numel(), device=weights.device)[:, None].expand(-1, count)
+        remaining = weights[short].index_put((rows[held], chosen[short][held]), weights.new_zeros(()))
+        more = torch.multinomial(remaining, count - int(have.min()), generator=generator)  # (S, count - fewest held)
+        slot = torch.arange(count, device=weights.device)[None] - have[:, None]  # (S, count): index into ``more`` where >= 0
+        chosen[short] = torch.where(slot >= 0, more.gather(1, slot.clamp(0, more.shape[1] - 1)), chosen[short])
+    return chosen
 
 
 class UniformSampler:

@@ -230,15 +230,18 @@ class _SchurLinearization:
             self.gradient = torch.cat([self.gradient, g_k[None]], dim=1)
             self.diagonal = torch.cat([self.diagonal, torch.diagonal(G)[None]], dim=1)
 
-    def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
+    def _camera_system(self, damping: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+        """The points eliminated and the reduced camera system solved, at (S,) ``damping``: the
+        cameras' right-hand side (C, dc) — with the intrinsics' border, (C, dc, 1 + m) holding
+        S_ck too — its solution S_cc⁻¹ of the same shape, whether that worked, (P, 3, 3) V*⁻¹ and
+        the (P, 3) points' gradient; None where a point block is singular."""
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        damping = damping[0]
         U = self.U + torch.diag_embed(damping[: C * dc].reshape(C, dc))
         V = self.V + torch.diag_embed(damping[C * dc:C * dc + 3 * P].reshape(P, 3))
         L, info = torch.linalg.cholesky_ex(V)
         if bool((info != 0).any()):
-            return torch.zeros_like(self.gradient), torch.zeros(1, dtype=torch.bool)
+            return None
         V_inverse = torch.cholesky_inverse(L)  # (P, 3, 3): every point block at once
         g_camera = self.gradient[0, : C * dc].reshape(C, dc)
         g_point = self.gradient[0, C * dc:C * dc + 3 * P].reshape(P, 3)
@@ -252,16 +255,49 @@ class _SchurLinearization:
             solution, ok = self._dense(U, V_inverse, Y, rhs)
         else:
             solution, ok = self._conjugate_gradients(U, V_inverse, Y, rhs)
+        return rhs, solution, ok, V_inverse, g_point
+
+    def solve(self, damping: Tensor) -> tuple[Tensor, Tensor]:
+        problem, bundle = self.problem, self.problem.bundle
+        C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
+        damping = damping[0]
+        system = self._camera_system(damping)
+        if system is None:
+            return torch.zeros_like(self.gradient), torch.zeros(1, dtype=torch.bool)
+        rhs, solution, ok, V_inverse, g_point = system
+        c, p = bundle.camera_index, bundle.point_index
         if self.border is None:
             delta_camera, delta_intrinsics, back = solution, None, g_point
         else:
             delta_intrinsics, ok = self._intrinsics_step(rhs, solution, V_inverse, g_point, damping[C * dc + 3 * P:], ok)
             delta_camera = solution[..., 0] - solution[..., 1:] @ delta_intrinsics
             back = g_point - (self.border[1].transpose(1, 2) @ delta_intrinsics)
-        back = back - torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
+        back = back - torch.zeros_like(g_point).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
         delta_point = (V_inverse @ back[..., None])[..., 0]
         parts = [delta_camera.flatten(), delta_point.flatten()] + ([] if delta_intrinsics is None else [delta_intrinsics])
         return torch.cat(parts)[None], ok[None]
+
+    def _intrinsics_information(self, rhs: Tensor, solution: Tensor, V_inverse: Tensor, damping: Tensor) -> Tensor:
+        """The m×m Schur complement of the camera and point blocks — the intrinsics' information
+        with cameras and points marginalized: rhs (C, dc, 1 + m) holds the cameras' right-hand
+        side and S_ck, solution (C, dc, 1 + m) S_cc⁻¹ of them, (m,) damping."""
+        _, Wk, G = self.border
+        m = G.shape[0]
+        S_kk = G + torch.diag(damping) - (Wk @ V_inverse @ Wk.transpose(1, 2)).sum(0)
+        S_ck = rhs[..., 1:].reshape(-1, m)
+        return S_kk - S_ck.T @ solution[..., 1:].reshape(-1, m)
+
+    def intrinsics_information(self) -> Tensor | None:
+        """(m, m) :meth:`_intrinsics_information` without damping (a trace of it on the cameras and
+        points, 1e-12 of each diagonal entry and of their mean: the gauge the fixed camera leaves,
+        the scale, has no information, and a fixed camera's block is empty); None where the
+        system is singular."""
+        diagonal = self.diagonal[0]
+        system = self._camera_system(1e-12 * (diagonal + diagonal.mean()))
+        if system is None or not bool(system[2]):
+            return None
+        rhs, solution, _, V_inverse, _ = system
+        return self._intrinsics_information(rhs, solution, V_inverse, torch.zeros_like(self.border[2][0]))
 
     def _intrinsics_step(self, rhs: Tensor, solution: Tensor, V_inverse: Tensor, g_point: Tensor, damping: Tensor,
                          ok: Tensor) -> tuple[Tensor, Tensor]:
@@ -269,14 +305,12 @@ class _SchurLinearization:
         holds the cameras' right-hand side and S_ck, solution (C, dc, 1 + m) S_cc⁻¹ of them."""
         _, Wk, G = self.border
         m = G.shape[0]
-        WkV = Wk @ V_inverse  # (P, m, 3)
-        S_kk = G + torch.diag(damping) - (WkV @ Wk.transpose(1, 2)).sum(0)
-        g_k = self.gradient[0, -m:] - (WkV @ g_point[..., None])[..., 0].sum(0)
-        S_ck = rhs[..., 1:].reshape(-1, m)
-        reduced = S_kk - S_ck.T @ solution[..., 1:].reshape(-1, m)
+        g_k = self.gradient[0, -m:] - (Wk @ V_inverse @ g_point[..., None])[..., 0].sum(0)
+        reduced = self._intrinsics_information(rhs, solution, V_inverse, damping)
         L, info = torch.linalg.cholesky_ex(reduced)
         if int(info) != 0:
             return torch.zeros_like(g_k), torch.tensor(False, device=g_k.device)
+        S_ck = rhs[..., 1:].reshape(-1, m)
         step = torch.cholesky_solve((g_k - S_ck.T @ solution[..., 0].flatten())[:, None], L)[:, 0]
         return step, ok
 
@@ -466,6 +500,26 @@ class _BundleLM:
         m = self.intrinsics_basis.shape[1]
         shared = [params[0, -4:] + self.intrinsics_basis @ delta[0, -m:]] if self.bundle.shared_intrinsics else []
         return torch.cat([torch.cat(parts, dim=1).flatten(), points.flatten()] + shared)[None]
+
+
+def intrinsics_covariance(problem: BundleProblem, *, config: BundleAdjustmentConfig | None = None) -> Tensor | None:
+    """(m, m) covariance of the ``shared_intrinsics`` (in their order) at the problem's state,
+    the cameras and points marginalized: σ² times the inverse of their information (the Schur
+    complement of the Gauss–Newton normal equations), σ² the loss-weighted residual sum of
+    squares over its degrees of freedom. Meaningful at an optimum (after :func:`bundle_adjust`);
+    None where the information is singular (an intrinsic the data leave free)."""
+    if not problem.shared_intrinsics:
+        raise InputError("intrinsics_covariance needs shared_intrinsics")
+    lm_problem = _BundleLM(problem, config or BundleAdjustmentConfig())
+    params = lm_problem.pack(problem)
+    information = lm_problem.linearize(params).intrinsics_information()
+    if information is None:
+        return None
+    residuals, _, weights = lm_problem._weighted(params, False)[:3]
+    unknowns = int(lm_problem.free.sum()) + 3 * problem.num_points + information.shape[0]
+    sigma_sq = (weights * residuals.square().sum(-1)).sum() / max(residuals.numel() - unknowns, 1)
+    covariance, info = torch.linalg.inv_ex(information)
+    return sigma_sq * covariance if int(info) == 0 else None
 
 
 def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | None = None) -> BundleResult:

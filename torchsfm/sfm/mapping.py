@@ -11,13 +11,13 @@ import torch
 from torch import Tensor
 
 from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, rescale_pixels, to_homogeneous
-from torchsfm.config import Config
+from torchsfm.config import BundleAdjustmentConfig, Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
 from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
 from torchsfm.geometry.rotation import angle_between
 from torchsfm.geometry.triangulation import triangulate_points
-from torchsfm.optim.bundle import BundleProblem, bundle_adjust
+from torchsfm.optim.bundle import BundleProblem, bundle_adjust, intrinsics_covariance
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.ragged import pad_rows
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
@@ -26,8 +26,10 @@ from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 from torchsfm.numerics import floor_tiny
 
-MAX_FOCAL_CHANGE = 1.25  # a refined focal length further than this factor from the start is not trusted
-MAX_PRINCIPAL_POINT_SHIFT = 0.1  # ... nor a principal point moved by more than this share of the image's larger side
+FOCAL_PRECISION = 0.25  # a refined focal length is trusted where the data pin it within this share of it (one sd)
+PRINCIPAL_POINT_PRECISION = 0.01  # the principal point leaves the image centre where the data pin it within this share of the larger side
+INTRINSICS_ROUNDS = 6  # adjustments of K (each followed by triangulation) while the focal length still moves
+FOCAL_SETTLED = 1e-3  # ... by more than this share
 PAIR_POSE_MIN_POINTS = 3  # a length along one ray needs one point; three that agree, and a majority, make it robust
 PAIR_POSE_SCALE_TOLERANCE = 0.1  # a point fixes a translation's length if 10 % more or less moves it by the resection threshold
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
@@ -199,6 +201,27 @@ def rms_disparity(tracks: Tracks, pixels: Tensor, num_views: int, counts: Tensor
     return ((square_sum + square_sum.T - 2 * cross).clamp_min(0) / counts.clamp_min(1)).sqrt()
 
 
+def bundle_problem(model: MapperState, views: Tensor, tracks: Tensor, usable: Tensor, fixed: Tensor,
+                   intrinsics: tuple[str, ...] = ()) -> BundleProblem:
+    """The bundle problem of the model's ``views`` (C,) and ``tracks`` (P,) with their ``usable``
+    (T,) observations; ``fixed`` (V,) views hold still, the named shared ``intrinsics`` move."""
+    camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
+    camera_of[views] = torch.arange(views.numel())
+    point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
+    point_of[tracks] = torch.arange(tracks.numel())
+    return BundleProblem(
+        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
+        points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
+        point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
+        fixed_cameras=fixed[views], shared_intrinsics=intrinsics,
+    )
+
+
+def bundle_settings(config: Config) -> BundleAdjustmentConfig:
+    """The mapper's bundle adjustment: ``bundle_adjustment`` with ``reconstruction.bundle_loss``."""
+    return dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
+
+
 def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor | None = None,
            free_views: Tensor | None = None, intrinsics: tuple[str, ...] = ()) -> float:
     """Adjust the registered cameras and the points with their inlier observations (or the
@@ -219,18 +242,8 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
     seen[model.tracks.view[usable]] = True
     views = torch.nonzero(seen if free_views is not None else model.registered).flatten()
     tracks = torch.nonzero(selected).flatten()
-    camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
-    camera_of[views] = torch.arange(views.numel())
-    point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
-    point_of[tracks] = torch.arange(tracks.numel())
-    problem = BundleProblem(
-        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
-        points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
-        point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
-        fixed_cameras=fixed[views], shared_intrinsics=intrinsics,
-    )
-    settings = dataclasses.replace(config.bundle_adjustment, loss=config.reconstruction.bundle_loss)
-    result = bundle_adjust(problem, config=settings)
+    problem = bundle_problem(model, views, tracks, usable, fixed, intrinsics)
+    result = bundle_adjust(problem, config=bundle_settings(config))
     adjusted = result.problem
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
     if intrinsics:
@@ -369,26 +382,66 @@ def pair_disagreement(model: MapperState, pairs: dict[tuple[int, int], PairMatch
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
-    """The K shared by every view — fx, fy, cx, cy — adjusted jointly with the cameras and points
-    (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``), in place. A result
-    that moves the focal length by more than ``MAX_FOCAL_CHANGE`` or the principal point by more
-    than ``MAX_PRINCIPAL_POINT_SHIFT`` of the image is not trusted (a critical motion, e.g. a
-    camera turning about one axis only, leaves K unconstrained): the model is then restored and
-    adjusted with its focal length as it was. Returns what was done, for the progress report."""
-    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone())
+    """The K shared by every view — ``reconstruction.refined_intrinsics`` of fx, fy, cx, cy —
+    adjusted jointly with the cameras and points (:class:`~torchsfm.optim.bundle.BundleProblem`
+    ``shared_intrinsics``), in place, and kept only where the data determine it.
+
+    The adjustment repeats, each round followed by triangulation of the tracks the new K reaches,
+    while the focal length moves (``INTRINSICS_ROUNDS`` at most; one adjustment from a prior twice
+    the true focal length gets only part of the way). Then each intrinsic's standard deviation,
+    cameras and points marginalized (:func:`~torchsfm.optim.bundle.intrinsics_covariance`),
+    decides: a principal point pinned no closer than ``PRINCIPAL_POINT_PRECISION`` of the larger
+    image side (forward motion, few views) goes back to the image centre and the focal length
+    alone is adjusted; a focal length pinned no closer than ``FOCAL_PRECISION`` of itself (a
+    critical motion leaves it free, e.g. two views whose optical axes meet) is not trusted: the
+    model is restored and adjusted with K as it was. Returns what was done, for the progress
+    report."""
+    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone(), model.has_point.clone())
     size = 2 * float(model.K[0, :2, 2].max()) + 1
-    bundle(model, config, fixed_view, intrinsics=tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name))
-    before, after = start[0][0], model.K[0]
-    ratios = torch.diagonal(after)[:2] / torch.diagonal(before)[:2]  # fx, fy after / before
-    focal_change = float(torch.maximum(ratios, 1 / ratios).max())
-    shift = float((after[:2, 2] - before[:2, 2]).norm())
-    if math.isfinite(focal_change) and focal_change <= MAX_FOCAL_CHANGE and shift <= MAX_PRINCIPAL_POINT_SHIFT * size:
-        return f"intrinsics refined by bundle adjustment: fx {float(after[0, 0]):.1f}, fy {float(after[1, 1]):.1f}, " \
-               f"principal point ({float(after[0, 2]):.1f}, {float(after[1, 2]):.1f}) px"
-    model.K, model.R, model.t, model.points = start
-    bundle(model, config, fixed_view)
-    return (f"intrinsics refinement not trusted (focal length x{focal_change:.2f}, principal point moved {shift:.0f} px): "
-            f"focal length kept at {float(before[0, 0]):.1f} px")
+    names = tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name)
+    rounds, deviation = adjust_intrinsics(model, config, fixed_view, names)
+    free_centre = tuple(name for name in names if name not in ("cx", "cy"))
+    if deviation is not None and len(free_centre) < len(names):
+        centre_deviation = max(float(deviation[names.index(name)]) for name in ("cx", "cy") if name in names)
+        if centre_deviation > PRINCIPAL_POINT_PRECISION * size:  # from the start again: the points fit the centre there
+            model.K, model.R, model.t, model.points, model.has_point = (value.clone() for value in start)
+            rounds, deviation = adjust_intrinsics(model, config, fixed_view, free_centre)
+            names = free_centre
+    K = model.K[0]
+    focal = {"f": float(K[0, 0]), "fx": float(K[0, 0]), "fy": float(K[1, 1])}
+    spread = {name: float("inf") if deviation is None else float(deviation[k]) for k, name in enumerate(names)}
+    if any(spread[name] > FOCAL_PRECISION * focal[name] for name in names if name in focal) or deviation is None:
+        model.K, model.R, model.t, model.points, model.has_point = start
+        bundle(model, config, fixed_view)
+        return (f"intrinsics refinement not trusted (the data pin the focal length to ±{max(spread.get(n, float('inf')) for n in names if n in focal):.0f} px only): "
+                f"focal length kept at {float(start[0][0, 0, 0]):.1f} px")
+    described = ", ".join(f"{name} {float(K[{'f': (0, 0), 'fx': (0, 0), 'fy': (1, 1), 'cx': (0, 2), 'cy': (1, 2)}[name]]):.1f} ± {spread[name]:.1f}"
+                          for name in names)
+    centre_note = "" if "cx" in names or "cy" in names else ", principal point at the image centre (the data do not pin it)"
+    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described} px{centre_note}"
+
+
+def adjust_intrinsics(model: MapperState, config: Config, fixed_view: int, names: tuple[str, ...]) -> tuple[int, Tensor | None]:
+    """Bundle adjustments of the cameras, points and the shared intrinsics ``names``, each followed
+    by triangulation, until the focal length settles (``FOCAL_SETTLED``, ``INTRINSICS_ROUNDS``
+    at most), in place; the rounds run and the intrinsics' standard deviations (in ``names``'
+    order; None where the data leave one free)."""
+    rounds = 0
+    for rounds in range(1, INTRINSICS_ROUNDS + 1):
+        before = float(model.K[0, 0, 0])
+        bundle(model, config, fixed_view, intrinsics=names)
+        for view in torch.nonzero(model.registered).flatten().tolist():
+            model.triangulate_new(view)
+        if abs(float(model.K[0, 0, 0]) / before - 1) < FOCAL_SETTLED:
+            break
+    usable = model.observation_errors() < config.reconstruction.max_reprojection_error
+    seen_twice = torch.zeros(model.tracks.num_tracks, dtype=torch.long).index_add_(0, model.tracks.track, usable.long()) >= 2
+    points = model.has_point & seen_twice  # a point seen once carries no information (and no block to invert)
+    usable &= points[model.tracks.track]
+    fixed = torch.arange(len(model.corners)) == fixed_view
+    problem = bundle_problem(model, torch.nonzero(model.registered).flatten(), torch.nonzero(points).flatten(), usable, fixed, names)
+    covariance = intrinsics_covariance(problem, config=bundle_settings(config))
+    return rounds, None if covariance is None else covariance.diagonal().clamp_min(0).sqrt()
 
 
 def map_incrementally(state, config: Config) -> Reconstruction:

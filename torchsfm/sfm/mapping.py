@@ -30,6 +30,7 @@ FOCAL_PRECISION = 0.25  # a refined focal length is trusted where the data pin i
 PRINCIPAL_POINT_PRECISION = 0.01  # the principal point leaves the image centre where the data pin it within this share of the larger side
 INTRINSICS_ROUNDS = 6  # adjustments of K (each followed by triangulation) while the focal length still moves
 FOCAL_SETTLED = 1e-3  # ... by more than this share
+INTRINSIC_ENTRIES = {"f": (0, 0), "fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}  # where each sits in K
 PAIR_POSE_MIN_POINTS = 3  # a length along one ray needs one point; three that agree, and a majority, make it robust
 PAIR_POSE_SCALE_TOLERANCE = 0.1  # a point fixes a translation's length if 10 % more or less moves it by the resection threshold
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
@@ -408,15 +409,15 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
             rounds, deviation = adjust_intrinsics(model, config, fixed_view, free_centre)
             names = free_centre
     K = model.K[0]
-    focal = {"f": float(K[0, 0]), "fx": float(K[0, 0]), "fy": float(K[1, 1])}
+    value = {name: float(K[INTRINSIC_ENTRIES[name]]) for name in names}
     spread = {name: float("inf") if deviation is None else float(deviation[k]) for k, name in enumerate(names)}
-    if any(spread[name] > FOCAL_PRECISION * focal[name] for name in names if name in focal) or deviation is None:
+    focal_spread = max((spread[name] / value[name] for name in names if name in ("f", "fx", "fy")), default=0.0)
+    if deviation is None or focal_spread > FOCAL_PRECISION:
         model.K, model.R, model.t, model.points, model.has_point = start
         bundle(model, config, fixed_view)
-        return (f"intrinsics refinement not trusted (the data pin the focal length to ±{max(spread.get(n, float('inf')) for n in names if n in focal):.0f} px only): "
+        return (f"intrinsics refinement not trusted (the data pin the focal length to ±{100 * focal_spread:.0f} % only): "
                 f"focal length kept at {float(start[0][0, 0, 0]):.1f} px")
-    described = ", ".join(f"{name} {float(K[{'f': (0, 0), 'fx': (0, 0), 'fy': (1, 1), 'cx': (0, 2), 'cy': (1, 2)}[name]]):.1f} ± {spread[name]:.1f}"
-                          for name in names)
+    described = ", ".join(f"{name} {value[name]:.1f} ± {spread[name]:.1f}" for name in names)
     centre_note = "" if "cx" in names or "cy" in names else ", principal point at the image centre (the data do not pin it)"
     return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described} px{centre_note}"
 

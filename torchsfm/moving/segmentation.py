@@ -339,8 +339,9 @@ def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationC
                           guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Residuals of every track to ``config.hypotheses`` sampled multi-frame F models.
 
-    tracks (F, N, 2) float64, visible (F, N) -> residuals (H, N) pixels (the largest Sampson
-    distance over the hypothesis' frame pairs) and defined (H, N) bool.
+    tracks (F, N, 2) float64, visible (F, N) -> residuals (H, N) px² (the largest squared Sampson
+    distance over the hypothesis' frame pairs: squared, for only their order counts — the
+    preferences are ranks) and defined (H, N) bool.
     """
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames,
                                                SAMPLE_SIZE, config, generator, guide)
@@ -349,14 +350,15 @@ def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationC
         return eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
 
     return worst_over_pairs(tracks, visible, frames, sample, usable, fit,
-                            lambda F, x1, x2: sampson_error_of_hypotheses(F[None], x1[None], x2[None])[0].sqrt())
+                            lambda F, x1, x2: sampson_error_of_hypotheses(F[None], x1[None], x2[None])[0])
 
 
 def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Tensor, usable: Tensor,
                      fit: Callable[[Tensor, Tensor], Tensor], distance: Callable[[Tensor, Tensor, Tensor], Tensor]
                      ) -> tuple[Tensor, Tensor]:
     """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
-    (H, 3, 3) models, ``distance`` (models (h, 3, 3), points (N, 2), (N, 2)) -> (h, N) pixels.
+    (H, 3, 3) models, ``distance`` (models (h, 3, 3), points (N, 2), (N, 2)) -> (h, N) (pixels,
+    or any increasing function of them).
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
     sample's tracks. The models of all hypotheses sharing a frame pair are scored together on
@@ -388,8 +390,9 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
                      guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Residuals of every track to sampled affine-camera motions over ``config.affine_frames``
     frames: 4 tracks span the 3-dimensional affine subspace of trajectories of their rigid
-    motion (Tomasi & Kanade); a track's residual is its distance to it, RMS per frame (pixels).
-    Defined where the track is seen in all the frames. -> (H, N), (H, N) bool."""
+    motion (Tomasi & Kanade); a track's residual is its squared distance to it per frame (px²:
+    only the order counts). Defined where the track is seen in all the frames. -> (H, N), (H, N)
+    bool."""
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.affine_frames, 4,
                                                config, generator, guide)
     H, m = frames.shape
@@ -415,7 +418,7 @@ def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig
         offset_norm = select[part] @ squares - 2 * origin_full[part] @ trajectories + origin_norm[part]
         axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
         projection = (axes.reshape(-1, 2 * F) @ trajectories).reshape(-1, 3, N) - origin_in_basis[part, :, None]
-        residual[part] = (offset_norm - projection.square().sum(1)).clamp_min(0).sqrt() / m ** 0.5
+        residual[part] = (offset_norm - projection.square().sum(1)).clamp_min(0) / m
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]
     return residual, defined.scatter(1, sample, False)
@@ -503,13 +506,14 @@ def homography_residuals(tracks: Tensor, visible: Tensor, config: SegmentationCo
                          guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Residuals of every track to sampled plane motions: 4 tracks over ``config.sample_frames``
     frames, one homography per frame pair (4-point solve in Hartley-normalized coordinates); a
-    track's residual is its largest transfer distance (pixels) over the pairs in which it is seen.
+    track's residual is its largest squared transfer distance (px²: only the order counts) over the
+    pairs in which it is seen.
     A plane is a local model: it separates a body from the scene around it even where their
     epipolar geometry agrees (a car driving along the camera's direction). -> (H, N), (H, N) bool."""
     frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames, 4,
                                                config, generator, guide)
     return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography,
-                            lambda G, x1, x2: transfer_error(G, x1[None], x2[None]).sqrt())
+                            lambda G, x1, x2: transfer_error(G, x1[None], x2[None]))
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

@@ -273,7 +273,8 @@ def test_images_of_different_sizes_without_K_are_refused_with_the_sizes_named(sh
 def test_a_portrait_shot_among_landscape_ones_is_registered_with_its_K(shared_data):
     """Fountain-P11 views 0-4 with view 2 turned a quarter (a 512 × 768 portrait shot; its K and
     pose turned with it): coarse matching cannot see through the turn, the SIFT bridge links it,
-    and every view is registered within 0.1 % of the path and 0.1°, each with its own size."""
+    and every view is registered within 0.2 % of the path and 0.1° (measured 0.092 %, 0.058°;
+    the five views unturned: 0.049 %, 0.037°), each with its own size."""
     from torchsfm.images import read_image
 
     sequence = read_strecha(shared_data / "strecha_fountain_P11")
@@ -288,7 +289,7 @@ def test_a_portrait_shot_among_landscape_ones_is_registered_with_its_K(shared_da
     model = torchsfm.reconstruct(images, K, generator=torch.Generator().manual_seed(0))
     assert model.view_indices == views
     errors = camera_errors(model.cameras.R, model.cameras.t, R, t)
-    assert float(errors.centre.max()) < 0.001 * errors.extent
+    assert float(errors.centre.max()) < 0.002 * errors.extent
     assert float(errors.rotation.max()) < 0.1
     assert model.image_sizes.tolist() == [[768, 512], [768, 512], [512, 768], [768, 512], [768, 512]]
 

@@ -401,13 +401,14 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     size = 2 * float(model.K[0, :2, 2].max()) + 1
     names = tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name)
     rounds, deviation = adjust_intrinsics(model, config, fixed_view, names)
-    free_centre = tuple(name for name in names if name not in ("cx", "cy"))
+    free_centre, centre_note = tuple(name for name in names if name not in ("cx", "cy")), ""
     if deviation is not None and len(free_centre) < len(names):
         centre_deviation = max(float(deviation[names.index(name)]) for name in ("cx", "cy") if name in names)
         if centre_deviation > PRINCIPAL_POINT_PRECISION * size:  # from the start again: the points fit the centre there
             model.K, model.R, model.t, model.points, model.has_point = (value.clone() for value in start)
             rounds, deviation = adjust_intrinsics(model, config, fixed_view, free_centre)
             names = free_centre
+            centre_note = f", principal point at the image centre (the data pin it to ±{centre_deviation:.0f} px only)"
     K = model.K[0]
     value = {name: float(K[INTRINSIC_ENTRIES[name]]) for name in names}
     spread = {name: float("inf") if deviation is None else float(deviation[k]) for k, name in enumerate(names)}
@@ -418,7 +419,6 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
         return (f"intrinsics refinement not trusted (the data pin the focal length to ±{100 * focal_spread:.0f} % only): "
                 f"focal length kept at {float(start[0][0, 0, 0]):.1f} px")
     described = ", ".join(f"{name} {value[name]:.1f} ± {spread[name]:.1f}" for name in names)
-    centre_note = "" if "cx" in names or "cy" in names else ", principal point at the image centre (the data do not pin it)"
     return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described} px{centre_note}"
 
 

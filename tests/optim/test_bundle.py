@@ -227,4 +227,6 @@ def test_the_intrinsics_covariance_matches_their_spread_over_noise_draws():
     assert_close(spread, predicted, rtol=0.25, atol=0.0)
     truth_K = torch.tensor([500.0, 320.0, 240.0], **DOUBLE)
     assert bool(((estimates - truth_K).abs() <= 3 * predicted).float().mean() >= 0.95)
+    with pytest.raises(InputError, match="needs shared_intrinsics"):
+        intrinsics_covariance(truth)
 

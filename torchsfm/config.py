@@ -418,9 +418,10 @@ class ReconstructionConfig:
     adjusted cameras and the model adjusted once more. The pipeline's adjustments use the robust
     ``bundle_loss`` (at ``bundle_adjustment.loss_scale`` px): real matches hold outliers that
     survive the epipolar and reprojection tests (``bundle_adjustment.loss`` stays the plain least
-    squares of :func:`torchsfm.bundle_adjust`). Without K, a last adjustment also refines the
+    squares of :func:`torchsfm.bundle_adjust`). Without K, the last adjustments also refine the
     ``refined_intrinsics`` of the K all views share (comma-separated: ``f`` for one square-pixel
-    focal length or ``fx``, ``fy``, and ``cx``, ``cy``).
+    focal length or ``fx``, ``fy``, and ``cx``, ``cy``), each kept only where the data determine
+    it (:func:`torchsfm.sfm.mapping.refine_intrinsics`).
     """
 
     min_pair_inliers: int = 30

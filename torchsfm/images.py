@@ -80,10 +80,15 @@ def reduce_image(image: Tensor, factor: int) -> Tensor:
     return (reduced * 255).round().to(torch.uint8) if image.dtype == torch.uint8 else reduced.to(image.dtype)
 
 
-def size_groups(images: list[Tensor]) -> list[list[int]]:
-    """The indices of (C, H, W) images grouped by size (H, W), in order of first appearance:
-    images of one size stack into a batch."""
+def same_size_batches(images: list[Tensor], batch: int) -> list[list[int]]:
+    """The indices of (C, H, W) images in batches of at most ``batch`` images of one size (H, W),
+    sizes in order of first appearance: each batch stacks into one tensor."""
     groups: dict[tuple[int, int], list[int]] = {}
     for v, image in enumerate(images):
         groups.setdefault(tuple(image.shape[-2:]), []).append(v)
-    return list(groups.values())
+    return [group[first:first + batch] for group in groups.values() for first in range(0, len(group), batch)]
+
+
+def sizes_named(images: list[Tensor]) -> str:
+    """The distinct sizes of (C, H, W) images as text, e.g. ``384x256, 768x512 px``."""
+    return ", ".join(f"{w}x{h}" for h, w in sorted({tuple(image.shape[-2:]) for image in images})) + " px"

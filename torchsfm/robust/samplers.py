@@ -33,9 +33,10 @@ def draws_without_replacement(weights: Tensor, count: int, generator: torch.Gene
     on being new is ∝ the remaining weights — and cost a tenth as much (one binary search per
     draw, not a pass over the row). Each row draws 2 ``count`` so; a row that sees fewer than
     ``count`` distinct indices among them (weight on a few entries) goes on from the ones it has,
-    without replacement over the rest.
+    without replacement over the rest. (:func:`_weighted_top_k` draws the same law by sorted keys,
+    a pass over every row; the RANSAC samplers keep it, for their seeded draws to stay as they are.)
     """
-    R, M = weights.shape
+    R = weights.shape[0]
     draws = torch.multinomial(weights, 2 * count, replacement=True, generator=generator)  # (R, 2 count)
     new = ~torch.tril(draws[:, :, None] == draws[:, None, :], diagonal=-1).any(2)  # not a repeat of an earlier draw
     rank = new.cumsum(1)

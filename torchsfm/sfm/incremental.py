@@ -18,7 +18,7 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import is_grey_bytes, read_image, reduce_image, to_grey_bytes
+from torchsfm.images import is_grey_bytes, read_image, reduce_image, sizes_named, to_grey_bytes
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -117,10 +117,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         kept.append(v)
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
-    sizes = sorted({tuple(image.shape[-2:]) for image in loaded})
-    if len(sizes) > 1 and one_K and not estimate_focal:
-        raise InputError(f"one K for images of different sizes ({', '.join(f'{w}x{h}' for h, w in sizes)} px): give each "
-                         f"view's K, (V, 3, 3) (a camera turned to portrait has its K turned with it)")
+    if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
+        raise InputError(f"one K for images of different sizes ({sizes_named(loaded)}): give each view's K, (V, 3, 3) "
+                         f"(a camera turned to portrait has its K turned with it)")
     config = config or Config()
     if moving_objects is not None:
         if moving_objects not in ("reject", "reconstruct"):

@@ -25,7 +25,7 @@ from torch.nn import functional
 
 from torchsfm.config import HarrisConfig, PairsConfig, RansacConfig
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import size_groups, to_unit_float
+from torchsfm.images import same_size_batches, to_unit_float
 from torchsfm.matching.ncc import extract_patches
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ragged import pad_rows
@@ -58,14 +58,12 @@ def coarse_features(greys: list[Tensor], config: PairsConfig) -> CoarseFeatures:
     harris = HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1)
     positions: dict[int, Tensor] = {}
     patches: dict[int, Tensor] = {}
-    for group in size_groups(greys):
-        for first in range(0, len(group), 8):
-            views = group[first:first + 8]
-            small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
-            corners = detect_corners(small, harris)
-            for b, v in enumerate(views):
-                positions[v] = corners.of_image(b).double()
-                patches[v] = extract_patches(small[b], positions[v], config.patch_half_size)
+    for views in same_size_batches(greys, 8):
+        small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
+        corners = detect_corners(small, harris)
+        for b, v in enumerate(views):
+            positions[v] = corners.of_image(b).double()
+            patches[v] = extract_patches(small[b], positions[v], config.patch_half_size)
     views = range(len(greys))
     patches_padded, valid = pad_rows([patches[v] for v in views])
     points = (pad_rows([positions[v] for v in views])[0] + 0.5) * factor - 0.5  # pixel centres of the reduced image

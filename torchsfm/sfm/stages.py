@@ -25,7 +25,7 @@ from torchsfm.camera import undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
-from torchsfm.images import check_image, is_grey_bytes, to_grey_bytes
+from torchsfm.images import check_image, is_grey_bytes, sizes_named, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
@@ -96,10 +96,9 @@ class ViewSet:
         V = len(images)
         for v, image in enumerate(images):
             check_image(image, f"image {v}")
-        sizes = sorted({tuple(image.shape[-2:]) for image in images})
-        if len(sizes) != 1 and estimate_focal:
-            raise InputError(f"images of different sizes ({', '.join(f'{w}x{h}' for h, w in sizes)} px) need their "
-                             f"intrinsics K: without K one camera, with one image size, is assumed")
+        if estimate_focal and len({image.shape[-2:] for image in images}) > 1:
+            raise InputError(f"images of different sizes ({sizes_named(images)}) need their intrinsics K: without K "
+                             f"one camera, with one image size, is assumed")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],

@@ -14,7 +14,7 @@ from torchsfm.config import Config, HarrisConfig, RansacConfig
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import size_groups, to_unit_float
+from torchsfm.images import same_size_batches, to_unit_float
 from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_candidates, match_corners
@@ -47,12 +47,10 @@ def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
     ``DETECTION_CHUNK`` views of one size per batched call (the Harris response's intermediate
     maps of a whole video would not fit in memory at once)."""
     corners: dict[int, Tensor] = {}
-    for group in size_groups(greys):
-        for first in range(0, len(group), DETECTION_CHUNK):
-            views = group[first:first + DETECTION_CHUNK]
-            detected = detect_corners(to_unit_float(torch.stack([greys[v] for v in views])), config)
-            for b, v in enumerate(views):
-                corners[v] = detected.of_image(b)
+    for views in same_size_batches(greys, DETECTION_CHUNK):
+        detected = detect_corners(to_unit_float(torch.stack([greys[v] for v in views])), config)
+        for b, v in enumerate(views):
+            corners[v] = detected.of_image(b)
     return [corners[v] for v in range(len(greys))]
 
 

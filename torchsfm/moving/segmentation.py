@@ -27,7 +27,11 @@ minimal-sample models:
    the tracks into ``pieces``; pieces are merged two at a time, the pair most strongly linked
    relative to the smaller one's volume first. The number of motions (when not given) is the
    count just before the largest relative drop of that link over the merges (model selection on
-   the dendrogram; see :func:`merge_clusters`).
+   the dendrogram; see :func:`merge_clusters`). The tracks are then also cut directly into that
+   many clusters (spectral k-means on as many eigenvectors), and the partition with the smaller
+   normalized cut (Shi & Malik 2000) is kept: merging pieces can leave a small piece on its own
+   while joining two motions, a direct cut can split a motion along a weak seam; the normalized
+   cut is the objective both approximate.
 5. **The static scene** is the motion whose tracks cover most cells of an 8×8 grid over the
    image over all frames (the scene surrounds the objects; ties: the most tracks); it becomes
    label 0, the others 1..k in decreasing size. This is a prior, not geometry: with a moving
@@ -148,10 +152,11 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     if num_motions is not None and not 1 <= num_motions <= index.numel():
         raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
     pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
-    embedding = vectors[:, :pieces]
-    embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
-    cut = kmeans(embedding, pieces, config.restarts, config.kmeans_iterations, generator)
+    cut = spectral_partition(vectors, pieces, config, generator)
     found = merge_clusters(affinity, cut, num_motions, config)
+    if int(found.max()) > 0:  # the same number of motions cut directly: the partition with the smaller normalized cut
+        direct = largest_first(spectral_partition(vectors, int(found.max()) + 1, config, generator))
+        found = min(found, direct, key=lambda partition: normalized_cut(affinity, partition))
     N = tracks.shape[1]
     piece_of = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
     piece_of[index] = cut
@@ -543,7 +548,7 @@ def merge_clusters(affinity: Tensor, labels: Tensor, count: int | None, config: 
     number kept is the one before the largest relative drop of that link,
     (s_c + floor) / (s_(c-1) + floor) over c = 2..``config.max_motions`` (s_c: the link of the
     merge that leaves c clusters, ``config.link_floor`` the link counted as none); one cluster
-    if no drop reaches ``config.min_link_drop``. Returns labels 0..C-1, largest volume first.
+    if no drop reaches ``config.min_link_drop``. Returns labels 0..C-1, most tracks first.
     """
     K = int(labels.max()) + 1
     one_hot = torch.nn.functional.one_hot(labels, K).to(affinity.dtype)  # (N, K)
@@ -573,11 +578,34 @@ def merge_clusters(affinity: Tensor, labels: Tensor, count: int | None, config: 
     for a, b, _ in merges[:max(start - count, 0)]:
         groups[groups == b] = a
     merged = groups[labels]
-    survivors, sizes = merged.unique(return_counts=True)
+    return largest_first(merged)
+
+
+def largest_first(labels: Tensor) -> Tensor:
+    """(N,) labels >= 0 renumbered 0..C-1 by decreasing number of tracks."""
+    survivors, sizes = labels.unique(return_counts=True)
     survivors = survivors[sizes.argsort(descending=True)]
-    renumber = torch.full((K,), -1, dtype=torch.long, device=labels.device)
+    renumber = torch.full((int(labels.max()) + 1,), -1, dtype=torch.long, device=labels.device)
     renumber[survivors] = torch.arange(survivors.numel(), device=labels.device)
-    return renumber[merged]
+    return renumber[labels]
+
+
+def spectral_partition(vectors: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator) -> Tensor:
+    """(N,) labels 0..count-1: k-means (``config.restarts`` restarts) of the rows of the
+    ``count`` leading (N, >= count) eigenvectors of the normalized affinity, each row scaled to
+    unit length (Ng, Jordan & Weiss 2001)."""
+    embedding = vectors[:, :count]
+    embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
+    return kmeans(embedding, count, config.restarts, config.kmeans_iterations, generator)
+
+
+def normalized_cut(affinity: Tensor, labels: Tensor) -> float:
+    """Shi & Malik's normalized cut of a partition, sum over its clusters of cut(c, rest) /
+    vol(c): (n, n) affinity, (n,) labels 0..C-1 (every label used)."""
+    one_hot = torch.nn.functional.one_hot(labels).to(affinity.dtype)  # (n, C)
+    links = one_hot.T @ affinity @ one_hot  # (C, C)
+    volume = links.sum(1)
+    return float(((volume - links.diagonal()) / volume.clamp_min(torch.finfo(volume.dtype).tiny)).sum())
 
 
 def grid_coverage(tracks: Tensor, visible: Tensor, labels: Tensor, count: int) -> Tensor:

@@ -122,7 +122,7 @@ def test_hopkins155_subset_misclassification():
     """The four sequences of hopkins155_subset (seed 0): given the number of motions, mean
     misclassification <= 5 % (measured 2.6 %: kanatani1 9.6 %, the others 0-0.4 %); the number
     of motions is found on at least 3 of the 4 (measured: all 4; kanatani1's object is weakly
-    separated, and other seeds find 3 motions there)."""
+    separated)."""
     pytest.importorskip("scipy")
     from torchsfm.io.datasets import read_hopkins155
 

@@ -580,7 +580,8 @@ class SegmentationConfig:
     best, within 3× that motion's median residual (else it is left unassigned). When the number
     of motions is found (not given), the static scene becomes what its rigid motion explains:
     other motions it explains join it, pieces of it that it does not explain are cut out as
-    moving bodies — a track is explained within the larger of ``scene_tolerance`` px (the
+    moving bodies (or outliers, where no rigid motion explains them within the χ² bound of noise
+    at ``scene_tolerance``) — a track is explained within the larger of ``scene_tolerance`` px (the
     tracker's noise floor) and the χ² bound at ``scene_significance``, a motion or piece by the
     majority of its tracks (:func:`torchsfm.moving.segmentation.settle_scene`); the residual is
     the scene's projective reconstruction (``scene_refinements`` camera / point alternations)

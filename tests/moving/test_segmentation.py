@@ -174,8 +174,8 @@ def test_segmentation_figure_colours_each_motion():
 
 def test_four_point_homography_is_exact_and_the_plane_model_segments():
     """The plane hypotheses' 4-point solver reproduces a homography to 1e-7 (float64, pixel
-    coordinates of a few hundred; degenerate samples give NaN), and segmentation with all three
-    model kinds still separates the scene's motions."""
+    coordinates of a few hundred; degenerate samples give NaN); plane hypotheses are used on
+    three frames or more only, and with them segmentation still separates the scene's motions."""
     from torchsfm.moving.segmentation import four_point_homography
 
     generator = torch.Generator().manual_seed(0)
@@ -188,8 +188,12 @@ def test_four_point_homography_is_exact_and_the_plane_model_segments():
     collinear = x1.clone()
     collinear[0, :, 1] = 5.0
     assert bool(four_point_homography(collinear, x2)[0].isnan().all())
+    all_three = SegmentationConfig(models="fundamental,affine,homography")
+    assert all_three.kinds_for(3) == ["fundamental", "affine", "homography"]
+    assert all_three.kinds_for(2) == ["fundamental", "affine"]
+    assert SegmentationConfig(models="homography").kinds_for(2) == ["homography"]
     data = scene(4, 2)
-    result = segment_motions(data.tracks, config=SegmentationConfig(models="fundamental,affine,homography"),
+    result = segment_motions(data.tracks, config=all_three,
                              generator=torch.Generator().manual_seed(0))
     inliers = data.labels >= 0
     assert result.num_motions == 3

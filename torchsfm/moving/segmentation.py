@@ -3,13 +3,15 @@
 Preference clustering (in the family of J-/T-linkage and the ordered-residual kernel) on batched
 minimal-sample models:
 
-1. **Hypotheses** of the kinds in ``config.models`` (default two), ``config.hypotheses`` of each per round:
+1. **Hypotheses** of the kinds in ``config.models`` (default two; ``homography``, optional, on
+   three frames or more only), ``config.hypotheses`` of each per round:
    ``fundamental`` — an 8-point F fitted to 8 tracks over every pair of ``sample_frames``
    frames (a track's residual: its largest Sampson distance over those pairs in which it is
    seen); ``affine`` — the 3-dimensional affine subspace of trajectories that 4 tracks span over
    ``affine_frames`` frames (Tomasi–Kanade; a track's residual: its distance to it, RMS per
-   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame pairs
-   as F (a local model). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
+   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame pairs as F (a
+   local model: it separates a car driving along the camera's direction, whose epipolar
+   geometry nearly agrees with the scene's). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
    half the samples are local (a seed track and its nearest neighbours in the image: a rigid body
    is usually a compact region); in each of the ``guided_rounds`` that follow, the other tracks
    of a sample are drawn in proportion to their similarity to the seed in the previous round —
@@ -140,7 +142,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         index, left_out = index[chosen], index[~chosen]
     similarity = None
     for _ in range(1 + config.guided_rounds):
-        fits = [MODELS[name](tracks[:, index], visible[:, index], config, generator, similarity) for name in config.model_kinds]
+        fits = [MODELS[name](tracks[:, index], visible[:, index], config, generator, similarity) for name in config.kinds_for(tracks.shape[0])]
         preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
         similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1))
     explained = explained_tracks(similarity, config)

@@ -104,3 +104,17 @@ def test_a_problem_that_stops_early_in_a_batch_keeps_its_exact_answer(model_clas
     assert batch.num_trials[1] == 300
     assert torch.equal(batch.inlier_mask[0], single.inlier_mask[0])
     assert_close(normalize_scale(batch.model[0]).abs(), normalize_scale(single.model[0]).abs(), rtol=0, atol=1e-9)
+
+
+def test_a_round_scored_in_blocks_of_problems_gives_the_same_answer(monkeypatch):
+    """A batch's round is fitted and scored a block of problems at a time (``ROUND_ELEMENTS``):
+    with blocks of one problem, four problems at 40 % outliers get bitwise the same models,
+    masks and trials as in one block."""
+    import torchsfm.robust.ransac as engine
+
+    data = torch.cat([_data(synthetic_two_view(300, noise=0.5, outlier_ratio=0.4, seed=seed)) for seed in range(4)])
+    whole = ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(3))
+    monkeypatch.setattr(engine, "ROUND_ELEMENTS", 1)
+    blocks = ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(3))
+    assert torch.equal(whole.model, blocks.model) and torch.equal(whole.inlier_mask, blocks.inlier_mask)
+    assert torch.equal(whole.num_trials, blocks.num_trials)

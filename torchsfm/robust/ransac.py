@@ -20,6 +20,8 @@ from torch import Tensor
 from torchsfm.config import RansacConfig
 from torchsfm.robust.samplers import SAMPLERS, UniformSampler, resolve_generator
 
+ROUND_ELEMENTS = 2**23  # hypotheses × rows of one round's block of problems (see ``ransac``)
+
 
 class RobustModel(Protocol):
     """What a model must provide to be estimated by :func:`ransac`.
@@ -160,13 +162,17 @@ def ransac(
         indices = sampler.sample(num_samples, s, generator, None if everyone else live)  # (P, K, s)
         samples = torch.gather(live_data[:, None].expand(P, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))
         models, ok = live_model.fit_minimal(samples)  # (P, H, *M), (P, H)
+        subset = None
         if preemptive and models.shape[1] > 1:
             subset = subset_sampler.sample(1, config.preemptive_points, generator, None if everyone else live)[:, 0]  # (P, m)
-            rows = torch.gather(live_data, 1, subset[..., None].expand(P, subset.shape[1], D))
-            partial, _ = evaluate(live_model, models, ok, rows, torch.gather(live_valid, 1, subset))
-            keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
-            models, ok = models[rows_of[:, None], keep], ok[rows_of[:, None], keep]
-        score, count = evaluate(live_model, models, ok, live_data, live_valid)
+        # scored a few problems at a time: the (problems, hypotheses, rows) residuals of a large
+        # batch do not fit in the caches (256 problems in one block ran at half the speed)
+        step = max(1, ROUND_ELEMENTS // (models.shape[1] * N))
+        blocks = [score_hypotheses(live_model if P <= step else live_model.restricted(torch.arange(a, min(a + step, P), device=device)),
+                                   models[a:a + step], ok[a:a + step], live_data[a:a + step], live_valid[a:a + step],
+                                   None if subset is None else subset[a:a + step], config, evaluate)
+                  for a in range(0, P, step)]
+        models, ok, score, count = (torch.cat(parts) for parts in zip(*blocks))
         round_score, round_best = score.max(dim=1)
         improved = round_score > best_score[live]  # (P,)
         chosen = models[rows_of, round_best]
@@ -194,6 +200,21 @@ def ransac(
     inlier_mask = _inliers(model, best_model, data, valid, threshold_sq)
     success = inlier_mask.sum(-1) >= s
     return RansacResult(model=best_model, inlier_mask=inlier_mask, num_trials=trials, success=success)
+
+
+def score_hypotheses(model: RobustModel, models: Tensor, ok: Tensor, data: Tensor, valid: Tensor, subset: Tensor | None,
+                     config: RansacConfig, evaluate) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One round's (P, H, *M) hypotheses of P problems, (P, H) valid: with a preemptive (P, m)
+    row subset, the best ``preemptive_keep`` of them on it kept; -> those models (P, H', *M),
+    validity (P, H'), score (P, H') and inlier count (P, H') on all (P, N, D) rows."""
+    if subset is not None:
+        rows = torch.gather(data, 1, subset[..., None].expand(*subset.shape, data.shape[-1]))
+        partial, _ = evaluate(model, models, ok, rows, torch.gather(valid, 1, subset))
+        keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
+        problem = torch.arange(models.shape[0], device=models.device)[:, None]
+        models, ok = models[problem, keep], ok[problem, keep]
+    score, count = evaluate(model, models, ok, data, valid)
+    return models, ok, score, count
 
 
 def _inliers(model: RobustModel, models: Tensor, data: Tensor, valid: Tensor, threshold_sq: float) -> Tensor:

@@ -9,9 +9,10 @@ minimal-sample models:
    frames (a track's residual: its largest Sampson distance over those pairs in which it is
    seen); ``affine`` — the 3-dimensional affine subspace of trajectories that 4 tracks span over
    ``affine_frames`` frames (Tomasi–Kanade; a track's residual: its distance to it, RMS per
-   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame pairs as F (a
-   local model: it separates a car driving along the camera's direction, whose epipolar
-   geometry nearly agrees with the scene's). A hypothesis is not evaluated on the tracks it was sampled from. In the first round
+   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame
+   pairs as F (a local model: it separates a car driving along the camera's direction, whose
+   epipolar geometry nearly agrees with the scene's). A hypothesis is not evaluated on the
+   tracks it was sampled from. In the first round
    half the samples are local (a seed track and its nearest neighbours in the image: a rigid body
    is usually a compact region); in each of the ``guided_rounds`` that follow, the other tracks
    of a sample are drawn in proportion to their similarity to the seed in the previous round —
@@ -223,8 +224,13 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
             return rms / _bound(rms[scene].nanmedian(), terms - 3, terms, config)
     rms, judged = track_residuals(tracks, visible, scene[None], pairs)
     rms = torch.where(judged[0], rms[0], torch.nan)
-    pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
-    return rms / _bound(rms[scene].nanmedian(), pairs_seen, pairs_seen, config)
+    seen = pairs_seen(visible, pairs)
+    return rms / _bound(rms[scene].nanmedian(), seen, seen, config)
+
+
+def pairs_seen(visible: Tensor, pairs: Tensor) -> Tensor:
+    """(N,) how many of the (P, 2) frame pairs each track is seen in (at least 1): (F, N) visibility."""
+    return (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
 
 
 def _bound(sigma: Tensor, dof: Tensor, terms: Tensor, config: SegmentationConfig) -> Tensor:
@@ -288,8 +294,8 @@ def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Ten
     pairs as the track is seen in (sqrt(χ²(d) / d) times the floor: 3.3× for one pair, 1.6× for
     14). False where the set is too small to fit."""
     rms, judged = track_residuals(tracks, visible, members, pairs)
-    pairs_seen = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).sum(0).clamp_min(1)
-    noise = _bound(torch.tensor(config.scene_tolerance, dtype=tracks.dtype), pairs_seen, pairs_seen, config)
+    seen = pairs_seen(visible, pairs)
+    noise = _bound(torch.tensor(config.scene_tolerance, dtype=tracks.dtype), seen, seen, config)
     return torch.where(judged & members, rms / noise, torch.nan).nanmedian(-1).values <= 1
 
 

@@ -140,6 +140,23 @@ def ransac(
         score = torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf"))
         return score, inliers.sum(-1)
 
+    def score_block(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor, subset: Tensor | None,
+                    block: slice) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The ``block`` of a round's P problems, hypotheses (P, H, *M) valid (P, H): with a
+        preemptive (P, m) row subset, the best ``preemptive_keep`` of them on it kept; -> those
+        models (b, H', *M), validity, score and inlier count (b, H') on all their rows."""
+        if block.stop < models.shape[0] or block.start > 0:
+            model = model.restricted(torch.arange(models.shape[0], device=device)[block])
+        models, ok, rows, rows_valid = models[block], ok[block], rows[block], rows_valid[block]
+        if subset is not None:
+            subset = subset[block]
+            partial, _ = evaluate(model, models, ok, torch.gather(rows, 1, subset[..., None].expand(*subset.shape, D)),
+                                  torch.gather(rows_valid, 1, subset))
+            keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
+            problem = torch.arange(models.shape[0], device=device)[:, None]
+            models, ok = models[problem, keep], ok[problem, keep]
+        return (models, ok, *evaluate(model, models, ok, rows, rows_valid))
+
     best_model: Tensor | None = None
     best_score = torch.full((B,), float("-inf"), dtype=torch.float64, device=device)
     best_count = torch.zeros(B, dtype=torch.long, device=device)
@@ -168,10 +185,7 @@ def ransac(
         # scored a few problems at a time: the (problems, hypotheses, rows) residuals of a large
         # batch do not fit in the caches (256 problems in one block ran at half the speed)
         step = max(1, ROUND_ELEMENTS // (models.shape[1] * N))
-        blocks = [score_hypotheses(live_model if P <= step else live_model.restricted(torch.arange(a, min(a + step, P), device=device)),
-                                   models[a:a + step], ok[a:a + step], live_data[a:a + step], live_valid[a:a + step],
-                                   None if subset is None else subset[a:a + step], config, evaluate)
-                  for a in range(0, P, step)]
+        blocks = [score_block(live_model, models, ok, live_data, live_valid, subset, slice(a, a + step)) for a in range(0, P, step)]
         models, ok, score, count = (torch.cat(parts) for parts in zip(*blocks))
         round_score, round_best = score.max(dim=1)
         improved = round_score > best_score[live]  # (P,)
@@ -200,21 +214,6 @@ def ransac(
     inlier_mask = _inliers(model, best_model, data, valid, threshold_sq)
     success = inlier_mask.sum(-1) >= s
     return RansacResult(model=best_model, inlier_mask=inlier_mask, num_trials=trials, success=success)
-
-
-def score_hypotheses(model: RobustModel, models: Tensor, ok: Tensor, data: Tensor, valid: Tensor, subset: Tensor | None,
-                     config: RansacConfig, evaluate) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """One round's (P, H, *M) hypotheses of P problems, (P, H) valid: with a preemptive (P, m)
-    row subset, the best ``preemptive_keep`` of them on it kept; -> those models (P, H', *M),
-    validity (P, H'), score (P, H') and inlier count (P, H') on all (P, N, D) rows."""
-    if subset is not None:
-        rows = torch.gather(data, 1, subset[..., None].expand(*subset.shape, data.shape[-1]))
-        partial, _ = evaluate(model, models, ok, rows, torch.gather(valid, 1, subset))
-        keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
-        problem = torch.arange(models.shape[0], device=models.device)[:, None]
-        models, ok = models[problem, keep], ok[problem, keep]
-    score, count = evaluate(model, models, ok, data, valid)
-    return models, ok, score, count
 
 
 def _inliers(model: RobustModel, models: Tensor, data: Tensor, valid: Tensor, threshold_sq: float) -> Tensor:

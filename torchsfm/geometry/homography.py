@@ -34,6 +34,16 @@ def transfer_error(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     return torch.where(mapped[..., 2].abs() > 1e-12, error, torch.full_like(error, float("inf")))
 
 
+def transfer_error_of_hypotheses(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """:func:`transfer_error` of h homographies (h, 3, 3) on the same (N, 2) points -> (h, N),
+    as one (N, 3) x (3, 3h) product: no per-hypothesis copy of the points, and no reduction over
+    the coordinate pair (slow in torch)."""
+    mapped = (to_homogeneous(x1) @ H.transpose(-1, -2).transpose(0, 1).reshape(3, -1)).reshape(-1, H.shape[0], 3)  # (N, h, 3)
+    w = mapped[..., 2]
+    error = (mapped[..., 0] / w - x2[:, :1]).square_() + (mapped[..., 1] / w - x2[:, 1:]).square_()
+    return torch.where(w.abs() > 1e-12, error, torch.full_like(error, float("inf"))).T
+
+
 def homography_jacobian(H: Tensor, x: Tensor) -> Tensor:
     """(N, 2, 2) derivative of the mapping x -> H x (pixels to pixels) at points x (N, 2): the
     local affine approximation of the homography (3, 3) there."""

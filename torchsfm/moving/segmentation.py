@@ -3,13 +3,13 @@
 Preference clustering (in the family of J-/T-linkage and the ordered-residual kernel) on batched
 minimal-sample models:
 
-1. **Hypotheses** of the kinds in ``config.models`` (default two; ``homography``, optional, on
-   three frames or more only), ``config.hypotheses`` of each per round:
+1. **Hypotheses** of the kinds in ``config.models`` (default all three; ``homography`` on three
+   frames or more only), ``config.hypotheses`` per round shared equally by the kinds used:
    ``fundamental`` — an 8-point F fitted to 8 tracks over every pair of ``sample_frames``
    frames (a track's residual: its largest Sampson distance over those pairs in which it is
    seen); ``affine`` — the 3-dimensional affine subspace of trajectories that 4 tracks span over
    ``affine_frames`` frames (Tomasi–Kanade; a track's residual: its distance to it, RMS per
-   frame); optionally ``homography`` — a plane's 4-point homographies over the same frame
+   frame); ``homography`` — a plane's 4-point homographies over the same frame
    pairs as F (a local model: it separates a car driving along the camera's direction, whose
    epipolar geometry nearly agrees with the scene's). A hypothesis is not evaluated on the
    tracks it was sampled from. In the first round
@@ -61,7 +61,7 @@ from torch import Tensor
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error, sampson_error_of_hypotheses
-from torchsfm.geometry.homography import homography_dlt, transfer_error
+from torchsfm.geometry.homography import homography_dlt, transfer_error, transfer_error_of_hypotheses
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.static_tracks import rms_bound, rigid_group
@@ -141,9 +141,10 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         chosen = torch.zeros(index.numel(), dtype=torch.bool, device=index.device)
         chosen[torch.randperm(index.numel(), generator=generator, device=generator.device)[:config.max_tracks].to(index.device)] = True
         index, left_out = index[chosen], index[~chosen]
-    similarity = None
-    for _ in range(1 + config.guided_rounds):
-        fits = [MODELS[name](tracks[:, index], visible[:, index], config, generator, similarity) for name in config.kinds_for(tracks.shape[0])]
+    similarity, kinds = None, config.kinds_for(tracks.shape[0])
+    for _ in range(1 + config.guided_rounds):  # the round's hypotheses shared equally by the kinds
+        fits = [MODELS[name](tracks[:, index], visible[:, index], config.hypotheses // len(kinds), config, generator, similarity)
+                for name in kinds]
         preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
         similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1))
     explained = explained_tracks(similarity, config)
@@ -362,16 +363,15 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
     return frames, sample, usable
 
 
-def fundamental_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+def fundamental_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,
                           guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Residuals of every track to ``config.hypotheses`` sampled multi-frame F models.
+    """Residuals of every track to ``count`` sampled multi-frame F models.
 
     tracks (F, N, 2) float64, visible (F, N) -> residuals (H, N) px² (the largest squared Sampson
     distance over the hypothesis' frame pairs: squared, for only their order counts — the
     preferences are ranks) and defined (H, N) bool.
     """
-    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames,
-                                               SAMPLE_SIZE, config, generator, guide)
+    frames, sample, usable = sample_hypotheses(tracks, visible, count, config.sample_frames, SAMPLE_SIZE, config, generator, guide)
 
     def fit(x1: Tensor, x2: Tensor) -> Tensor:
         return eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
@@ -413,15 +413,14 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     return worst, defined.scatter(1, sample, False)
 
 
-def affine_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,
                      guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Residuals of every track to sampled affine-camera motions over ``config.affine_frames``
+    """Residuals of every track to ``count`` sampled affine-camera motions over ``config.affine_frames``
     frames: 4 tracks span the 3-dimensional affine subspace of trajectories of their rigid
     motion (Tomasi & Kanade); a track's residual is its squared distance to it per frame (px²:
     only the order counts). Defined where the track is seen in all the frames. -> (H, N), (H, N)
     bool."""
-    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.affine_frames, 4,
-                                               config, generator, guide)
+    frames, sample, usable = sample_hypotheses(tracks, visible, count, config.affine_frames, 4, config, generator, guide)
     H, m = frames.shape
     F, N, _ = tracks.shape
     centred = torch.where(visible[..., None], tracks - tracks[visible].mean(0), 0.0)  # smaller terms to cancel
@@ -529,18 +528,16 @@ def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: to
     return labels[int(cost.argmin())]
 
 
-def homography_residuals(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+def homography_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,
                          guide: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Residuals of every track to sampled plane motions: 4 tracks over ``config.sample_frames``
+    """Residuals of every track to ``count`` sampled plane motions: 4 tracks over ``config.sample_frames``
     frames, one homography per frame pair (4-point solve in Hartley-normalized coordinates); a
     track's residual is its largest squared transfer distance (px²: only the order counts) over the
     pairs in which it is seen.
     A plane is a local model: it separates a body from the scene around it even where their
     epipolar geometry agrees (a car driving along the camera's direction). -> (H, N), (H, N) bool."""
-    frames, sample, usable = sample_hypotheses(tracks, visible, config.hypotheses, config.sample_frames, 4,
-                                               config, generator, guide)
-    return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography,
-                            lambda G, x1, x2: transfer_error(G, x1[None], x2[None]))
+    frames, sample, usable = sample_hypotheses(tracks, visible, count, config.sample_frames, 4, config, generator, guide)
+    return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography, transfer_error_of_hypotheses)
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

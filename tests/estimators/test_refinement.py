@@ -55,3 +55,22 @@ def test_pose_refinement_recovers_a_perturbed_pose():
     assert rotation_error_deg(R[0], scene.R) < 1e-8
     assert translation_direction_error_deg(t[0], scene.t) < 1e-8
     assert_close(fundamental_from_pose(scene.K1, scene.K2, R[0], t[0]), scene.F, rtol=0, atol=1e-10)
+
+
+def test_F_refinement_ignores_the_rows_without_weight():
+    """Rows of weight 0 (outliers, padding) are gathered out before LM: holding wild values
+    there changes nothing (float64, 1e-12), in a batch whose problems support different counts."""
+    scenes = [synthetic_two_view(60, noise=0.5, seed=seed) for seed in (4, 5)]
+    x1, x2 = torch.stack([s.x1 for s in scenes]), torch.stack([s.x2 for s in scenes])
+    F0 = eight_point(x1, x2)
+    weights = torch.ones(2, 60, **DOUBLE)
+    weights[0, ::3] = 0
+    weights[1, 50:] = 0
+    wild1, wild2 = x1.clone(), x2.clone()
+    wild1[weights == 0] = 1e4
+    F, _ = fundamental_refinement.refine_fundamental(F0, wild1, wild2, weights, LMConfig())
+    for b in range(2):
+        kept = weights[b] > 0
+        alone, _ = fundamental_refinement.refine_fundamental(F0[b:b + 1], x1[b:b + 1, kept], x2[b:b + 1, kept],
+                                                             weights[b:b + 1, kept], LMConfig())
+        assert_close(F[b], alone[0], rtol=0, atol=1e-12)

@@ -16,3 +16,18 @@ def test_jacobian_matches_central_differences():
     numeric = torch.stack([(mapped(x + step * e) - mapped(x - step * e)) / (2 * step)
                            for e in torch.eye(2, dtype=torch.float64)], dim=-1)  # (N, 2 outputs, 2 inputs)
     assert_close(homography_jacobian(H, x), numeric, rtol=0, atol=1e-8)
+
+
+def test_transfer_errors_of_many_hypotheses_equal_one_at_a_time():
+    """The (N, 3) x (3, 3h) product gives each homography's transfer error (float64, to 1e-12
+    relative), +inf where a point maps to infinity."""
+    from torchsfm.geometry.homography import transfer_error, transfer_error_of_hypotheses
+
+    generator = torch.Generator().manual_seed(1)
+    H = torch.eye(3, dtype=torch.float64) + 0.05 * torch.randn(7, 3, 3, generator=generator, dtype=torch.float64)
+    H[0, 2] = torch.tensor([0.0, 0.0, 0.0], dtype=torch.float64)  # every point at infinity
+    x1, x2 = (600 * torch.rand(40, 2, generator=generator, dtype=torch.float64) for _ in range(2))
+    batched = transfer_error_of_hypotheses(H, x1, x2)
+    assert batched.shape == (7, 40)
+    assert bool(batched[0].isinf().all())
+    assert_close(batched[1:], torch.stack([transfer_error(h, x1, x2) for h in H[1:]]), rtol=1e-12, atol=0)

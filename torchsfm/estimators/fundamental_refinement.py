@@ -17,6 +17,7 @@ from torchsfm.geometry.fundamental import normalize_scale, sampson_jacobian, sam
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
 from torchsfm.optim.lm import LMResult, levenberg_marquardt
+from torchsfm.robust.ragged import weighted_rows_first
 from torchsfm.numerics import floor_tiny
 
 
@@ -61,20 +62,6 @@ def _tangent_derivatives(state: Tensor) -> Tensor:
     return torch.cat([U @ generators[:3] @ S @ Vt, -(U @ S @ generators[:3] @ Vt), U @ generators[3:] @ Vt], dim=1)
 
 
-def _supported_rows(x1: Tensor, x2: Tensor, weights: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The rows of (B, N, 2) x1, x2 and (B, N) weights with a weight, gathered to the front of
-    (B, M, ·) copies, M the largest count (zero weights pad the rest): every LM iteration then
-    costs what the supported rows need, not what the outliers would (60 % of the rows at 60 %
-    contamination)."""
-    supported = weights > 0
-    M = max(1, int(supported.sum(-1).max()))
-    if M == weights.shape[-1]:
-        return x1, x2, weights
-    rows = torch.argsort(supported.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :M]  # supported first, in order
-    pick = rows[..., None].expand(-1, -1, 2)
-    return x1.gather(1, pick), x2.gather(1, pick), weights.gather(1, rows)
-
-
 def refine_fundamental(
     F: Tensor, x1: Tensor, x2: Tensor, weights: Tensor, config: LMConfig
 ) -> tuple[Tensor, LMResult]:
@@ -90,7 +77,7 @@ def refine_fundamental(
         The refined F (B, 3, 3), unit Frobenius norm and the sign of the input, and the
         :class:`~torchsfm.optim.lm.LMResult` (its costs are ½ Σ w·Sampson, in pixels²).
     """
-    x1, x2, weights = _supported_rows(x1, x2, weights)
+    weights, x1, x2 = weighted_rows_first(weights, x1, x2)  # LM on the supported rows only
     _, T1 = hartley_normalize(x1, weights)
     _, T2 = hartley_normalize(x2, weights)
     F_normalized = torch.linalg.inv(T2).transpose(-1, -2) @ F @ torch.linalg.inv(T1)

@@ -16,6 +16,7 @@ from torchsfm.config import LMConfig
 from torchsfm.geometry.fundamental import sampson_jacobian, sampson_residual
 from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
 from torchsfm.optim.lm import LMResult, levenberg_marquardt
+from torchsfm.robust.ragged import weighted_rows_first
 
 
 _ROTATION_GENERATORS = skew(torch.eye(3, dtype=torch.float64))  # [e_k]x, (3, 3, 3)
@@ -77,6 +78,7 @@ def refine_relative_pose(
     Returns:
         Refined R (B, 3, 3), unit t (B, 3) and the LM report (costs in pixels²).
     """
+    weights, x1, x2 = weighted_rows_first(weights, x1, x2)  # LM on the inliers only
     residuals, jacobian = relative_pose_problem(x1, x2, K1, K2, weights)
     state = torch.cat([R.flatten(1), t / t.norm(dim=-1, keepdim=True)], dim=-1)
     result = levenberg_marquardt(residuals, state, config, retract=retract_pose, tangent_dim=5, jacobian=jacobian)

@@ -23,3 +23,16 @@ def fill_padding(data: Tensor, valid: Tensor) -> Tensor:
     first = data[torch.arange(data.shape[0], device=data.device), valid.long().argmax(-1)]  # (B, D)
     first = torch.where(valid.any(-1, keepdim=True), first, 0.0)
     return torch.where(valid[..., None], data, first[:, None])
+
+
+def weighted_rows_first(weights: Tensor, *data: Tensor) -> tuple[Tensor, ...]:
+    """The rows with a weight of (B, N) ``weights`` and of each (B, N, D) ``data``, gathered in
+    their order to the front of (B, M, ·) copies, M the largest count of weighted rows (zero
+    weights pad the rest; the inputs themselves where no row is dropped): a least-squares fit
+    then costs what its weighted rows need, not what its outliers would."""
+    weighted = weights > 0
+    M = max(1, int(weighted.sum(-1).max()))
+    if M == weights.shape[-1]:
+        return (weights, *data)
+    rows = torch.argsort(weighted.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :M]
+    return (weights.gather(1, rows), *(x.gather(1, rows[..., None].expand(-1, -1, x.shape[-1])) for x in data))

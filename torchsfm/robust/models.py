@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses, seven_point_minimal
-from torchsfm.geometry.homography import homography_dlt, transfer_error
+from torchsfm.geometry.homography import homography_dlt, transfer_error_of_hypotheses
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
 from torchsfm.geometry.projective import projective_resection, reprojection_squared
@@ -150,7 +150,7 @@ class HomographyModel:
         return homography_dlt(data[..., :2], data[..., 2:], weights)
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
-        return transfer_error(models, data[:, None, :, :2], data[:, None, :, 2:])
+        return transfer_error_of_hypotheses(models, data[..., :2], data[..., 2:])
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., :2]

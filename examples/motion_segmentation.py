@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (the figures vary with it)")
     parser.add_argument("--seeds", type=int, default=1, help="run seeds seed .. seed + seeds - 1; figures are means over them")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                        help="config overrides, e.g. segmentation.models=fundamental,affine,homography")
+                        help="config overrides, e.g. segmentation.models=fundamental,affine")
     args = parser.parse_args()
     config = with_overrides(Config(), args.set).segmentation
     seeds = range(args.seed, args.seed + args.seeds)

@@ -59,6 +59,29 @@ def test_given_number_of_motions_is_used():
         segment_motions(data.tracks, num_motions=0)
 
 
+def test_the_round_budget_is_shared_by_the_kinds_used(monkeypatch):
+    """``segmentation.hypotheses`` per round, split evenly: 1333 each of F, affine and plane
+    hypotheses on five frames; on two frames the plane kind is left out and F and affine get
+    2000 each (the budget of the two-kind default before plane hypotheses joined it)."""
+    import torchsfm.moving.segmentation as segmentation
+
+    counts: dict[str, list[int]] = {}
+
+    def recording(name, fit):
+        def wrapped(tracks, visible, count, *args):
+            counts.setdefault(name, []).append(count)
+            return fit(tracks, visible, count, *args)
+        return wrapped
+
+    monkeypatch.setattr(segmentation, "MODELS", {name: recording(name, fit) for name, fit in segmentation.MODELS.items()})
+    config = SegmentationConfig(guided_rounds=0)
+    segment_motions(scene(3, 1).tracks, config=config, generator=torch.Generator().manual_seed(0))
+    assert counts == {"fundamental": [1333], "affine": [1333], "homography": [1333]}
+    counts.clear()
+    segment_motions(scene(3, 1).tracks[:2], config=config, generator=torch.Generator().manual_seed(0))
+    assert counts == {"fundamental": [2000], "affine": [2000]}
+
+
 def test_a_static_scene_is_one_motion():
     data = scene(3, 0)
     result = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))

@@ -19,8 +19,9 @@ def test_jacobian_matches_central_differences():
 
 
 def test_transfer_errors_of_many_hypotheses_equal_one_at_a_time():
-    """The (N, 3) x (3, 3h) product gives each homography's transfer error (float64, to 1e-12
-    relative), +inf where a point maps to infinity."""
+    """The (N, 3) x (3, 3h) product gives each homography's transfer error ‖x2 - π(H x1)‖²
+    (float64, to 1e-12 relative against the mapping written out), +inf where a point maps to
+    infinity; :func:`transfer_error` is its one-homography case."""
     from torchsfm.geometry.homography import transfer_error, transfer_error_of_hypotheses
 
     generator = torch.Generator().manual_seed(1)
@@ -30,4 +31,6 @@ def test_transfer_errors_of_many_hypotheses_equal_one_at_a_time():
     batched = transfer_error_of_hypotheses(H, x1, x2)
     assert batched.shape == (7, 40)
     assert bool(batched[0].isinf().all())
-    assert_close(batched[1:], torch.stack([transfer_error(h, x1, x2) for h in H[1:]]), rtol=1e-12, atol=0)
+    written_out = torch.stack([(from_homogeneous(to_homogeneous(x1) @ h.T) - x2).square().sum(-1) for h in H[1:]])
+    assert_close(batched[1:], written_out, rtol=1e-12, atol=0)
+    assert_close(transfer_error(H, x1.expand(7, -1, -1), x2.expand(7, -1, -1)), batched, rtol=1e-12, atol=0)

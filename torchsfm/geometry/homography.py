@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.numerics import floor_tiny
@@ -28,10 +28,9 @@ def homography_dlt(x1: Tensor, x2: Tensor, weights: Tensor | None = None) -> Ten
 
 
 def transfer_error(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """Squared one-way transfer error ‖x2 - π(H x1)‖² (pixels²): (*, N); +inf where H x1 is at infinity."""
-    mapped = to_homogeneous(x1) @ H.transpose(-1, -2)
-    error = (from_homogeneous(mapped) - x2).square().sum(-1)
-    return torch.where(mapped[..., 2].abs() > 1e-12, error, torch.full_like(error, float("inf")))
+    """Squared one-way transfer error ‖x2 - π(H x1)‖² (pixels²) of one homography (*, 3, 3) per
+    point set (*, N, 2): (*, N); +inf where H x1 is at infinity."""
+    return transfer_error_of_hypotheses(H[..., None, :, :], x1, x2)[..., 0, :]
 
 
 def transfer_error_of_hypotheses(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:

@@ -12,6 +12,7 @@ from torchsfm.geometry.fundamental import eight_point
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.projective import canonical_cameras, projective_resection, reprojection_squared, triangulate_multiview
 from torchsfm.io.datasets import read_hopkins155, read_kt3dmoseg
+from torchsfm.moving.static_tracks import rigid_group
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import rejection_figures, synthetic_moving_scene
 
@@ -38,6 +39,25 @@ def test_projective_geometry_is_exact_without_noise():
     X = triangulate_multiview(P, x, torch.ones(F_, N, dtype=torch.float64))
     torch.testing.assert_close(reprojection_squared(P, X.expand(F_, N, 4), x).sqrt(), torch.zeros(F_, N, dtype=torch.float64),
                                atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rigid_group_fits_the_reprojection_error(seed):
+    """Ten frames of a static scene, 0.5 px noise: the projective reconstruction's reprojection sum
+    of squares is at most that of the true cameras (with each track triangulated from them), as a
+    least-squares fit over cameras and points must be. The cameras' DLT with unweighted rows
+    (algebraic error) exceeded it at seed 2 (78.4 against 75.2 px²)."""
+    scene = _scene(seed, frames=10, noise=0.5, objects=0)
+    F_, N, _ = scene.tracks.shape
+    visible = torch.ones(F_, N, dtype=torch.bool)
+    group = rigid_group(scene.tracks, visible, visible[0], fundamental_ransac=Config().fundamental.ransac,
+                        resection_ransac=Config().moving_objects.resection_ransac, refinements=10,
+                        generator=torch.Generator().manual_seed(0))
+    P = scene.K @ torch.cat([scene.R, scene.t[..., None]], -1)
+    X = triangulate_multiview(P, scene.tracks, visible.double())
+    true_cameras = reprojection_squared(P, X.expand(F_, N, 4), scene.tracks).sum()
+    assert group.members.all()
+    assert float((group.rms.square() * 2 * group.frames_seen).sum()) <= float(true_cameras)
 
 
 @pytest.mark.parametrize("method, wrong_bound", [("rigid_groups", 0.05), ("both", 0.10), ("segmentation", 0.02)])
@@ -121,14 +141,19 @@ def test_hopkins_dev_background_is_the_highest_label(shared_data):
 @pytest.mark.parametrize("clip, undetected_bound, wrong_bound", [
     ("Seq038_Clip02", 0.15, 0.05),  # three cars the clustering merged into the scene: 99.7 % undetected before they were cut
     ("Seq005_Clip01", 0.02, 0.02),  # two cars segmented directly: unchanged by the cut
-    ("Seq095_Clip01", 0.25, 0.10),  # cars whose epipolar lines agree with the scene's: the projective evidence cuts them
+    ("Seq059_Clip01", 0.05, 0.05),  # background pieces far from the centre: 29.8 % rejected with the unweighted resection
+    ("Seq095_Clip01", 0.50, 0.05),  # cars driving with the camera: a static scene explains them (below)
 ])
 def test_the_default_whole_track_decision_on_kitti_clips(shared_data, clip, undetected_bound, wrong_bound):
     """The default method (``segmentation``: every motion segmented, the scene then made what its
     rigid motion explains) on KT3DMoSeg clips; measured (seed 0) Seq038_Clip02 1.9 % undetected /
-    0.9 % wrongly rejected, Seq005_Clip01 0.0 / 0.0 %, Seq095_Clip01 1.0 / 0.3 % (59.6 / 3.1 %
-    with the F-pair evidence alone; with F and affine hypotheses only, before plane hypotheses
-    joined them by default: 6.7 / 0.0, 0.0 / 0.0 and 13.2 / 3.6 %)."""
+    0.9 % wrongly rejected, Seq005_Clip01 0.0 / 0.0 %, Seq059_Clip01 0.9 / 0.2 %, Seq095_Clip01
+    39.1 / 0.3 %. Seq095's bound is loose on purpose: its cars drive along the camera's direction,
+    and the scene's projective reconstruction, fitted to them and the background together, explains
+    them within the noise (median excess 0.1–0.4), so the scene keeps them. Before the scene's
+    cameras were fitted to the reprojection error (an unweighted DLT) the cut took them (1.0 %),
+    but the same bias cut background pieces of Seq059_Clip01 and Seq020_Clip01 (29.8 and 24.8 %
+    wrongly rejected)."""
     sequence = read_kt3dmoseg(shared_data / "kt3dmoseg_dev" / f"{clip}_Tracks")
     result = reject_moving_objects_in_tracks(sequence.tracks, sequence.visible, generator=torch.Generator().manual_seed(0))
     figures = rejection_figures(result.background_mask, sequence.labels)

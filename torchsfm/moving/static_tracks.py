@@ -18,7 +18,9 @@ calibration is needed, and tracks may have gaps.
    (reweighted linear triangulation, i.e. the reprojection error), keep as the group's core the
    tracks whose reprojection sum of squares is within the χ²(2m − 3) quantile of
    ``significance`` (σ estimated from the core, m the frames a track is seen in), and re-fit
-   each camera by DLT on the core.
+   each camera by DLT on the core, its rows scaled by 1 / |p3ᵀX| as in the triangulation, so
+   that both steps lower the reprojection error the bounds assume (unweighted rows weigh points
+   by their projective depth: on KITTI clips that bias cut whole background pieces).
 5. Membership: RMS reprojection error within the larger of that χ² bound and ``threshold`` (the
    tracker's pixel noise floor: real tracks drift, and σ from a self-fitted core is optimistic).
 
@@ -38,11 +40,15 @@ from torchsfm.config import RansacConfig
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.projective import (
     canonical_cameras,
+    project,
     reprojection_squared,
     triangulate_multiview,
 )
+from torchsfm.numerics import floor_tiny
 from torchsfm.robust.models import FundamentalModel, ProjectiveResectionModel
 from torchsfm.robust.ransac import ransac
+
+DEPTH_FLOOR = 0.1  # of a camera's median |p3ᵀX|: a point near its focal plane weighs at most 100× the median
 
 
 @dataclass
@@ -162,8 +168,11 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         core = members & tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance))
         if step == refinements:
             break
-        weights = (observed & core).double()
-        enough = weights.sum(1) >= ProjectiveResectionModel.sample_size
+        used = observed & core
+        depth = project(cameras, X.expand(F, N, 4))[..., 2].abs()  # (F, N): rows scaled by 1 / |p3ᵀX|
+        typical = floor_tiny(torch.where(used, depth, torch.nan).nanmedian(1).values[:, None])
+        weights = torch.where(used, (typical / depth.maximum(DEPTH_FLOOR * typical)).square(), 0.0)
+        enough = used.sum(1) >= ProjectiveResectionModel.sample_size
         refit = model.fit_weighted(torch.cat([X.expand(F, N, 4), x], dim=-1), weights)
         camera_valid = camera_valid & enough
         cameras = torch.where(enough[:, None, None], refit, cameras)

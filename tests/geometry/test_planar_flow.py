@@ -76,6 +76,35 @@ def test_joint_homographies_are_exact_and_share_their_inliers():
         assert_close(estimate, H[j], rtol=0, atol=1e-8)
 
 
+def test_joint_model_is_each_frames_model_batched():
+    """Two problems, three frames, padded rows: the joint model's minimal and weighted fits, its
+    residuals and its restriction to one problem equal those of each frame's own model (the
+    frames run as extra problems of one plug-in), to rounding: a batched solve may sum in
+    another order."""
+    SAME = {"rtol": 1e-12, "atol": 1e-12}
+    g = torch.Generator().manual_seed(0)
+    data = 500 * torch.rand(2, 30, 8, generator=g, dtype=torch.float64)
+    valid = torch.ones(2, 30, dtype=torch.bool)
+    valid[1, 25:] = False
+    joint = JointModel(HomographyModel, data, valid)
+    frames = [HomographyModel(torch.cat([data[..., :2], data[..., j:j + 2]], -1), valid) for j in (2, 4, 6)]
+    samples = data[:, torch.randperm(30, generator=g)[:20]].unflatten(1, (5, 4))  # (2, 5, 4, 8)
+    models, solvable = joint.fit_minimal(samples)
+    weights = valid.double()
+    refit = joint.fit_weighted(data, weights)
+    residuals = joint.residuals(models, data)
+    per_frame = []
+    for j, model in enumerate(frames):
+        H, ok = model.fit_minimal(torch.cat([samples[..., :2], samples[..., 2 + 2 * j:4 + 2 * j]], -1))
+        assert_close(models[:, :, j], H, **SAME)
+        assert ok.all() and solvable.all()
+        assert_close(refit[:, j], model.fit_weighted(torch.cat([data[..., :2], data[..., 2 + 2 * j:4 + 2 * j]], -1), weights), **SAME)
+        per_frame.append(model.residuals(H, torch.cat([data[..., :2], data[..., 2 + 2 * j:4 + 2 * j]], -1)))
+    assert_close(residuals, torch.stack(per_frame).amax(0), **SAME)
+    second = joint.restricted(torch.tensor([1]))
+    assert_close(second.fit_minimal(samples[1:])[0], models[1:], **SAME)
+
+
 def test_minimal_homography_solver_is_exact_and_flags_degenerate_samples():
     H = torch.tensor([[1.1, 0.05, 10.0], [-0.03, 0.95, 4.0], [1e-4, 2e-4, 1.0]], dtype=torch.float64)
     x = torch.tensor([[10.0, 20.0], [300.0, 40.0], [280.0, 400.0], [30.0, 350.0]], dtype=torch.float64)

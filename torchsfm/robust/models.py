@@ -220,6 +220,8 @@ class JointModel:
     """One model per frame, all fitted to the same samples: data rows ``(x, y, x'_1, y'_1, ...,
     x'_J, y'_J)`` (D = 2 + 2J); the model of frame j is fitted to ``(x, y, x'_j, y'_j)``. Models
     are (J, *M); a row's residual is its largest over the frames, so an inlier fits every frame.
+    The J frames run as J·B problems of one ``model_class`` plug-in (one call per step, not one
+    per frame).
 
     Args:
         model_class: a single-solution plug-in for (x, y, x', y') rows built as
@@ -228,28 +230,33 @@ class JointModel:
     """
 
     def __init__(self, model_class, data: Tensor, valid: Tensor | None = None) -> None:
-        self.models = [model_class(frame, valid) for frame in self._frames(data)]
-        self.sample_size = self.models[0].sample_size
+        self.frames = (data.shape[-1] - 2) // 2
+        self.model = model_class(self._pairs(data), None if valid is None else valid.repeat_interleave(self.frames, 0))
+        self.sample_size = self.model.sample_size
 
     def restricted(self, problems: Tensor) -> JointModel:
         joint = copy.copy(self)
-        joint.models = [model.restricted(problems) for model in self.models]
+        rows = problems[:, None] * self.frames + torch.arange(self.frames, device=problems.device)
+        joint.model = self.model.restricted(rows.flatten())
         return joint
 
-    @staticmethod
-    def _frames(data: Tensor) -> list[Tensor]:
-        return [torch.cat([data[..., :2], data[..., j:j + 2]], dim=-1) for j in range(2, data.shape[-1], 2)]
+    def _pairs(self, rows: Tensor) -> Tensor:
+        """(B, ..., 2 + 2J) rows -> (B·J, ..., 4) rows of frame pairs, frame-major within a problem."""
+        reference = rows[..., :2].unsqueeze(1).expand(-1, self.frames, *rows.shape[1:-1], 2)
+        others = rows[..., 2:].unflatten(-1, (self.frames, 2)).movedim(-2, 1)  # (B, J, ..., 2)
+        return torch.cat([reference, others], -1).flatten(0, 1)
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
-        fits = [model.fit_minimal(frame) for model, frame in zip(self.models, self._frames(samples))]
-        return torch.stack([m for m, _ in fits], dim=2), torch.stack([ok for _, ok in fits]).all(0)
+        models, solvable = self.model.fit_minimal(self._pairs(samples))  # (B·J, K, *M), (B·J, K)
+        models = models.unflatten(0, (-1, self.frames)).movedim(1, 2)  # (B, K, J, *M)
+        return models, solvable.unflatten(0, (-1, self.frames)).all(1)
 
     def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
-        return torch.stack([model.fit_weighted(frame, weights) for model, frame in zip(self.models, self._frames(data))], dim=1)
+        return self.model.fit_weighted(self._pairs(data), weights.repeat_interleave(self.frames, 0)).unflatten(0, (-1, self.frames))
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
-        frames = zip(self.models, self._frames(data))
-        return torch.stack([model.residuals(models[:, :, j], frame) for j, (model, frame) in enumerate(frames)]).amax(0)
+        per_frame = models.movedim(2, 1).flatten(0, 1)  # (B·J, H, *M)
+        return self.model.residuals(per_frame, self._pairs(data)).unflatten(0, (-1, self.frames)).amax(1)
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., :2]

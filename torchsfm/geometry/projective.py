@@ -47,7 +47,12 @@ def project(P: Tensor, X: Tensor) -> Tensor:
 def reprojection_squared(P: Tensor, X: Tensor, x: Tensor) -> Tensor:
     """Squared distances between x (*, N, 2) and the projections of X (*, N, 4) by P (*, 3, 4):
     (*, N); +inf for a projection at infinity."""
-    h = project(P, X)
+    return projection_distance_squared(project(P, X), x)
+
+
+def projection_distance_squared(h: Tensor, x: Tensor) -> Tensor:
+    """Squared distances between x (*, N, 2) and homogeneous projections h (*, N, 3) (from
+    :func:`project`): (*, N); +inf for a projection at infinity."""
     w = h[..., 2]
     safe = torch.where(w.abs() > 1e-12, w, torch.ones_like(w))
     d = (h[..., :2] / safe[..., None] - x).square().sum(-1)

@@ -41,7 +41,7 @@ from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.projective import (
     canonical_cameras,
     project,
-    reprojection_squared,
+    projection_distance_squared,
     triangulate_multiview,
 )
 from torchsfm.numerics import floor_tiny
@@ -155,7 +155,8 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     for step in range(refinements + 1):
         observed = visible & camera_valid[:, None]
         X = triangulate_multiview(cameras, x, observed.double())
-        squared = torch.where(observed, reprojection_squared(cameras, X.expand(F, N, 4), x), 0.0) / scale**2
+        projected = project(cameras, X.expand(F, N, 4))  # (F, N, 3)
+        squared = torch.where(observed, projection_distance_squared(projected, x), 0.0) / scale**2
         frames_seen = observed.sum(0)
         tested = frames_seen >= 3
         dof = (2 * frames_seen - 3).clamp_min(1)
@@ -169,7 +170,7 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         if step == refinements:
             break
         used = observed & core
-        depth = project(cameras, X.expand(F, N, 4))[..., 2].abs()  # (F, N): rows scaled by 1 / |p3ᵀX|
+        depth = projected[..., 2].abs()  # (F, N): rows scaled by 1 / |p3ᵀX|
         typical = floor_tiny(torch.where(used, depth, torch.nan).nanmedian(1).values[:, None])
         weights = torch.where(used, (typical / depth.maximum(DEPTH_FLOOR * typical)).square(), 0.0)
         enough = used.sum(1) >= ProjectiveResectionModel.sample_size

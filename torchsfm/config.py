@@ -581,8 +581,9 @@ class SegmentationConfig:
     ``min_link_drop``). Tracks seen in fewer than ``min_frames`` frames are left unassigned.
     More than ``max_tracks`` tracks (the affinity is N × N): a seeded subset of that many is
     clustered and every other track goes to the motion whose fundamental matrices explain it
-    best, within 3× that motion's median residual (else it is left unassigned). When the number
-    of motions is found (not given), the static scene becomes what its rigid motion explains:
+    best, within 3× that motion's median residual (else it is left unassigned). The static scene
+    becomes what its rigid motion explains (when the number of motions is given: if that leaves
+    that many motions, else the pieces are cut into that many as they are):
     other motions it explains join it, pieces of it that it does not explain are cut out as
     moving bodies (or outliers, where no rigid motion explains them within the χ² bound of noise
     at ``scene_tolerance``) — a track is explained within the larger of ``scene_tolerance`` px (the

@@ -42,9 +42,11 @@ minimal-sample models:
    sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
    rigidity votes reject least); callers holding better evidence choose another label as the
    scene (``sizes`` and ``coverage`` are per label).
-6. **The scene settled** (number of motions found, not given): motions the scene's rigid motion
-   explains join it, pieces of it that it does not explain are cut out as bodies
-   (:func:`settle_scene`, :func:`scene_excess`).
+6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
+   it does not explain are cut out as bodies (:func:`settle_scene`, :func:`scene_excess`).
+   Given the number of motions, the settled partition is kept when it has that many; otherwise
+   the pieces are cut into that many (step 4 with the count given), unsettled — the number says
+   how many motions there are, the scene's geometry which tracks belong to it.
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
@@ -118,7 +120,8 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         visible: (F, N) bool, where each track is seen (default: everywhere).
         config: the ``segmentation`` section (default settings if None).
         num_motions: the number of rigid motions, static scene included, when known (benchmarks
-            that are given it); None finds it (model selection on the merges).
+            that are given it): the settled partition if it has that many, else the pieces cut
+            into that many; None finds it (model selection on the merges).
         generator: random source of the hypotheses and of k-means.
 
     Returns:
@@ -157,18 +160,24 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
     pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
     cut = spectral_partition(vectors, pieces, config, generator)
-    found = merge_clusters(affinity, cut, num_motions, config)
-    if int(found.max()) > 0:  # the same number of motions cut directly: the partition with the smaller normalized cut
-        direct = largest_first(spectral_partition(vectors, int(found.max()) + 1, config, generator))
-        found = min(found, direct, key=lambda partition: normalized_cut(affinity, partition))
     N = tracks.shape[1]
     piece_of = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
     piece_of[index] = cut
-    clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
-    clusters[index] = found
-    labels = scene_first(tracks, visible, clusters)
-    if num_motions is None:
-        labels = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
+
+    def motions(count: int | None) -> Tensor:
+        """(N,) labels of ``count`` motions cut from the pieces (None: as many as found, the scene settled)."""
+        found = merge_clusters(affinity, cut, count, config)
+        if int(found.max()) > 0:  # the same number of motions cut directly: the partition with the smaller normalized cut
+            direct = largest_first(spectral_partition(vectors, int(found.max()) + 1, config, generator))
+            found = min(found, direct, key=lambda partition: normalized_cut(affinity, partition))
+        clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
+        clusters[index] = found
+        labels = scene_first(tracks, visible, clusters)
+        return labels if count is not None else settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
+
+    labels = motions(None)  # given their number, a settled partition of that many motions is kept
+    if num_motions is not None and int(labels.max()) + 1 != num_motions:
+        labels = motions(num_motions)
     num_motions = int(labels.max()) + 1
     if left_out.numel():
         labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)

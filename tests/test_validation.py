@@ -34,3 +34,9 @@ def test_count_distinct_rows():
     x = torch.tensor([[1.0, 2.0], [1.0, 2.0], [2.0, 1.0], [1.0, 3.0], [2.0, 1.0]])
     assert count_distinct_rows(x) == 3
     assert count_distinct_rows(torch.zeros(0, 2)) == 0
+    # a batch: every matrix counted on its own, equal to the count of its rows as tuples
+    g = torch.Generator().manual_seed(0)
+    batch = torch.randint(0, 3, (5, 40, 2), generator=g).double()
+    expected = torch.tensor([len({tuple(row) for row in matrix.tolist()}) for matrix in batch])
+    assert torch.equal(count_distinct_rows(batch), expected)
+    assert torch.equal(count_distinct_rows(batch.reshape(5, 1, 40, 2)), expected.reshape(5, 1))

@@ -65,10 +65,16 @@ def check_floating(**tensors: Tensor) -> None:
             raise InputError(f"{name} must be a floating-point tensor, got {tensor.dtype}")
 
 
-def count_distinct_rows(x: Tensor) -> int:
-    """Number of distinct rows of x (N, D), by an exact lexicographic sort (stable sorts)."""
-    order = torch.arange(x.shape[0], device=x.device)
-    for column in reversed(range(x.shape[1])):
-        order = order[torch.argsort(x[order, column], stable=True)]
-    ordered = x[order]
-    return 1 + int((ordered[1:] != ordered[:-1]).any(-1).sum()) if x.shape[0] else 0
+def count_distinct_rows(x: Tensor) -> Tensor:
+    """Number of distinct rows of each (N, D) matrix of x (*, N, D) -> (*,) int64, by an exact
+    lexicographic sort (stable sorts, one per column, every matrix at once)."""
+    N, D = x.shape[-2:]
+    if N == 0:
+        return torch.zeros(x.shape[:-2], dtype=torch.long, device=x.device)
+    flat = x.reshape(-1, N, D)
+    B = flat.shape[0]
+    order = torch.arange(N, device=x.device).expand(B, N)
+    for column in reversed(range(D)):
+        order = order.gather(1, torch.argsort(flat[..., column].gather(1, order), dim=1, stable=True))
+    ordered = flat.gather(1, order[..., None].expand(B, N, D))
+    return (1 + (ordered[:, 1:] != ordered[:, :-1]).any(-1).sum(1)).reshape(x.shape[:-2])

@@ -123,6 +123,10 @@ class TestBadInput:
         same = torch.full((20, 2), 100.0, **DOUBLE)
         with pytest.raises(DegenerateConfigurationError, match="x1 has only 1 distinct point"):
             torchsfm.estimate_fundamental(same, self.scene.x2)
+        batch = self.scene.x2.expand(3, -1, -1).clone()
+        batch[1, :, :] = batch[1, :1]  # the second problem's x2 all one point
+        with pytest.raises(DegenerateConfigurationError, match=r"x2\[1\] has only 1 distinct point"):
+            torchsfm.estimate_fundamental(self.scene.x1.expand(3, -1, -1), batch)
 
     def test_singular_or_malformed_K(self):
         singular = self.scene.K1.clone()

@@ -92,14 +92,14 @@ def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) 
         check_finite(x1=x1[mask], x2=x2[mask])
         x1, x2 = (torch.where(mask[..., None], x, 0.0) for x in (x1, x2))
     if valid is None:
-        for b in range(x1.shape[0]):
-            for name, x in (("x1", x1[b]), ("x2", x2[b])):
-                distinct = count_distinct_rows(x)
-                if distinct < 8:
-                    raise DegenerateConfigurationError(
-                        f"{name}{'' if unbatched else f'[{b}]'} has only {distinct} distinct point(s); "
-                        "a fundamental matrix needs at least 8 distinct correspondences"
-                    )
+        for name, x in (("x1", x1), ("x2", x2)):
+            distinct = count_distinct_rows(x)  # (B,)
+            if bool((distinct < 8).any()):
+                b = int(torch.nonzero(distinct < 8)[0, 0])
+                raise DegenerateConfigurationError(
+                    f"{name}{'' if unbatched else f'[{b}]'} has only {int(distinct[b])} distinct point(s); "
+                    "a fundamental matrix needs at least 8 distinct correspondences"
+                )
     return x1, x2, unbatched, mask
 
 

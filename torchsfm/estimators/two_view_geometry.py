@@ -20,7 +20,7 @@ from torchsfm.geometry.essential import essential_from_fundamental
 from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
 from torchsfm.estimators.fundamental_refinement import refine_fundamental
 from torchsfm.geometry.triangulation import triangulate_points
-from torchsfm.robust.models import FundamentalModel
+from torchsfm.robust.models import EssentialModel, FundamentalModel
 from torchsfm.estimators.calibrated_pose import calibrated_pose
 from torchsfm.robust.ransac import ransac
 from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
@@ -128,6 +128,18 @@ def _robust_fundamental(x1: Tensor, x2: Tensor, config: Config, generator: torch
     return F, inliers & success[:, None], found.num_trials, success
 
 
+def _robust_essential(x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, config: Config, generator: torch.Generator | None,
+                      valid: Tensor):
+    """RANSAC on the five-point E (``config.fundamental.ransac``) on float64 (B, N, 2) inputs,
+    (B, 3, 3) intrinsics and a (B, N) validity mask -> (F = K2⁻ᵀ E K1⁻¹, inlier mask, trials,
+    success); no LM here (the pose's LM refines E's five degrees of freedom)."""
+    data = torch.cat([x1, x2], dim=-1)
+    found = ransac(EssentialModel(data, K1, K2, valid), data, config.fundamental.ransac, valid=valid, generator=generator)
+    success = found.success & torch.isfinite(found.model).flatten(1).all(-1) & (found.inlier_mask.sum(-1) >= 8)
+    F = torch.where(success[:, None, None], found.model, 0.0)
+    return F, found.inlier_mask & success[:, None], found.num_trials, success
+
+
 def estimate_fundamental(
     x1: Tensor, x2: Tensor, *, valid: Tensor | None = None, config: Config | None = None,
     generator: torch.Generator | None = None
@@ -177,7 +189,9 @@ def estimate_relative_pose(
     """Relative pose of two calibrated views from putative correspondences (thesis §3.3–3.5).
 
     Robust F (:func:`estimate_fundamental`) → E = K2ᵀ F K1 → four (R, t) → cheirality →
-    optional LM on (R, t̂) over the Sampson error → triangulation of the inliers.
+    optional LM on (R, t̂) over the Sampson error → triangulation of the inliers. With
+    ``config.relative_pose.solver = "five_point"`` RANSAC fits E itself (five correspondences
+    per sample) and the LM starts from it (and the ``num_starts`` extra starts).
 
     Args:
         x1, x2: pixel correspondences (N, 2) or (B, N, 2).
@@ -201,7 +215,10 @@ def estimate_relative_pose(
     if K1b.shape[0] != B or K2b.shape[0] != B:
         raise ShapeError(f"K1 and K2 must be (3, 3) or ({B}, 3, 3), got {tuple(K1.shape)} and {tuple(K2.shape)}")
 
-    F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
+    if config.relative_pose.solver == "five_point":
+        F, candidates, trials, success = _robust_essential(x1b, x2b, K1b, K2b, config, generator, mask)
+    else:
+        F, candidates, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
     if valid is None:
         _raise_on_failure(success, unbatched)
     R = torch.eye(3, dtype=torch.float64, device=x1b.device).repeat(B, 1, 1)

@@ -8,6 +8,8 @@ import torch
 from torch import Tensor
 
 from torchsfm.camera import to_homogeneous
+from torchsfm.geometry.essential import project_to_essential
+from torchsfm.geometry.five_point import five_point_essential
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses, seven_point_minimal
 from torchsfm.geometry.homography import homography_dlt, transfer_error_of_hypotheses
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
@@ -64,6 +66,51 @@ class FundamentalModel:
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., :2]
+
+
+class EssentialModel(FundamentalModel):
+    """E of two calibrated views, as the F it induces; data rows ``(x1, y1, x2, y2)`` in pixels.
+
+    Minimal solver: the five-point algorithm (:func:`~torchsfm.geometry.five_point.five_point_essential`,
+    up to ten E per sample of 5) on K⁻¹-normalized points; non-minimal: the 8-point algorithm
+    on the normalized points, projected to the nearest essential matrix. Models are
+    F = K2⁻ᵀ E K1⁻¹ (unit norm), scored like :class:`FundamentalModel` (Sampson, pixels²).
+
+    Args:
+        data: (B, N, 4); K1, K2: (B, 3, 3) intrinsics; valid: optional (B, N) mask of real rows.
+    """
+
+    sample_size = 5
+
+    def __init__(self, data: Tensor, K1: Tensor, K2: Tensor, valid: Tensor | None = None) -> None:
+        super().__init__(data, valid)
+        self.sample_size = 5
+        self.K1_inv, self.K2_inv = torch.linalg.inv(K1), torch.linalg.inv(K2)
+
+    def restricted(self, problems: Tensor) -> EssentialModel:
+        return _restricted(self, problems, "T1", "T2", "K1_inv", "K2_inv")
+
+    def _normalized(self, data: Tensor) -> tuple[Tensor, Tensor]:
+        extra = data.dim() - 3  # sample axes between the problem and the rows
+        K1_inv = self.K1_inv.reshape(-1, *[1] * extra, 3, 3)
+        K2_inv = self.K2_inv.reshape(-1, *[1] * extra, 3, 3)
+        return apply_affine(K1_inv, data[..., :2]), apply_affine(K2_inv, data[..., 2:])
+
+    def _fundamental(self, E: Tensor) -> Tensor:
+        extra = E.dim() - 3
+        F = self.K2_inv.reshape(-1, *[1] * extra, 3, 3).transpose(-1, -2) @ E @ self.K1_inv.reshape(-1, *[1] * extra, 3, 3)
+        return F / F.flatten(-2).norm(dim=-1)[..., None, None]
+
+    def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
+        E, ok = five_point_essential(*self._normalized(samples))  # (B, K, 10, 3, 3), (B, K, 10)
+        F, ok = self._fundamental(E).flatten(1, 2), ok.flatten(1)
+        keep = max(1, int(ok.sum(1).max()))  # the real solutions first, the batch cut to the most any problem has
+        order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
+        rows = torch.arange(F.shape[0], device=F.device)[:, None]
+        return F[rows, order], ok[rows, order]
+
+    def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
+        return self._fundamental(project_to_essential(eight_point(*self._normalized(data), weights)))
 
 
 class ResectionModel:

@@ -134,7 +134,7 @@ def _robust_essential(x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, config: Co
     (B, 3, 3) intrinsics and a (B, N) validity mask -> (F = K2⁻ᵀ E K1⁻¹, inlier mask, trials,
     success); no LM here (the pose's LM refines E's five degrees of freedom)."""
     data = torch.cat([x1, x2], dim=-1)
-    found = ransac(EssentialModel(data, K1, K2, valid), data, config.fundamental.ransac, valid=valid, generator=generator)
+    found = ransac(EssentialModel(K1, K2), data, config.fundamental.ransac, valid=valid, generator=generator)
     success = found.success & torch.isfinite(found.model).flatten(1).all(-1) & (found.inlier_mask.sum(-1) >= 8)
     F = torch.where(success[:, None, None], found.model, 0.0)
     return F, found.inlier_mask & success[:, None], found.num_trials, success

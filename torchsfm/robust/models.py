@@ -77,18 +77,16 @@ class EssentialModel(FundamentalModel):
     F = K2⁻ᵀ E K1⁻¹ (unit norm), scored like :class:`FundamentalModel` (Sampson, pixels²).
 
     Args:
-        data: (B, N, 4); K1, K2: (B, 3, 3) intrinsics; valid: optional (B, N) mask of real rows.
+        K1, K2: (B, 3, 3) intrinsics of the two views.
     """
 
     sample_size = 5
 
-    def __init__(self, data: Tensor, K1: Tensor, K2: Tensor, valid: Tensor | None = None) -> None:
-        super().__init__(data, valid)
-        self.sample_size = 5
+    def __init__(self, K1: Tensor, K2: Tensor) -> None:  # no Hartley normalization: K⁻¹ normalizes
         self.K1_inv, self.K2_inv = torch.linalg.inv(K1), torch.linalg.inv(K2)
 
     def restricted(self, problems: Tensor) -> EssentialModel:
-        return _restricted(self, problems, "T1", "T2", "K1_inv", "K2_inv")
+        return _restricted(self, problems, "K1_inv", "K2_inv")
 
     def _normalized(self, data: Tensor) -> tuple[Tensor, Tensor]:
         extra = data.dim() - 3  # sample axes between the problem and the rows

@@ -114,8 +114,9 @@ class LMConfig:
     cost decrease below which the iteration stops (ours; 1e-6, Ceres' default function tolerance:
     for m residuals of noise σ the cost is about m σ² / 2, so such a step lowers it by under
     5e-7·m σ² and moves the estimate by a small fraction of its standard deviation, about 0.1
-    for m = 10⁴ — below the noise, and the last iterations of a batch wait on no problem for it). ``damping`` is ``identity`` (mu I, the
-    thesis) or ``diagonal`` (mu diag(JᵀJ), Marquardt's scale-invariant choice; then mu0 = tau).
+    for m = 10⁴ — below the noise, and a batch's last iterations no longer wait on it).
+    ``damping`` is ``identity`` (mu I, the thesis) or ``diagonal`` (mu diag(JᵀJ), Marquardt's
+    scale-invariant choice; then mu0 = tau).
     """
 
     max_iterations: int = 100

@@ -2,10 +2,12 @@
 
 Five correspondences in normalized camera coordinates give a 4-dimensional null space of the
 epipolar constraints, E = x X + y Y + z Z + W. The essential matrix constraints — det E = 0 and
-2 E Eᵀ E − tr(E Eᵀ) E = 0 — are ten cubics in (x, y, z). In graded reverse lexicographic order
-their ten cubic monomials are eliminated (one batched solve); what remains expresses each cubic
-through the ten monomials of degree <= 2, which is the action matrix of multiplication by x on
-that basis. Its real eigenvectors are the monomials evaluated at the (up to ten) real solutions.
+2 E Eᵀ E − tr(E Eᵀ) E = 0 — are ten cubics in (x, y, z) over 20 monomials. Eliminating their ten
+cubic monomials (one batched solve of the 10 × 10 block) expresses each cubic through the ten
+monomials of degree <= 2; multiplying that basis by x lands in it or on an eliminated cubic,
+which gives the action matrix of x (Stewénius et al. order the monomials grevlex; any order of
+the cubics within their degree gives the same matrix). Its real eigenvectors are the basis
+monomials evaluated at the (up to ten) real solutions.
 """
 
 from __future__ import annotations
@@ -19,9 +21,9 @@ MAX_SOLUTIONS = 10
 
 
 def _monomials(degree: int) -> list[tuple[int, int, int, int]]:
-    """Exponents (x, y, z, w) of the homogeneous monomials of a degree in graded reverse
-    lexicographic order of x > y > z, w the homogenizing variable (the constant): x³, x²y, x²z,
-    xy², xyz, xz², y³, y²z, yz², z³, x², xy, ..., z, 1 for degree 3."""
+    """Exponents (x, y, z, w) of the homogeneous monomials of a degree, w the homogenizing
+    variable (the constant), by decreasing degree in (x, y, z) and lexicographically (x > y > z)
+    within it: x³, x²y, x²z, xy², xyz, xz², y³, y²z, yz², z³, x², xy, ..., z, 1 for degree 3."""
     exponents = [e for e in itertools.product(range(degree + 1), repeat=4) if sum(e) == degree]
     return sorted(exponents, key=lambda e: (-(e[0] + e[1] + e[2]), [-value for value in e[:3]]))
 

@@ -68,7 +68,7 @@ class FundamentalModel:
         return data[..., :2]
 
 
-class EssentialModel(FundamentalModel):
+class EssentialModel:
     """E of two calibrated views, as the F it induces; data rows ``(x1, y1, x2, y2)`` in pixels.
 
     Minimal solver: the five-point algorithm (:func:`~torchsfm.geometry.five_point.five_point_essential`,
@@ -109,6 +109,9 @@ class EssentialModel(FundamentalModel):
 
     def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
         return self._fundamental(project_to_essential(eight_point(*self._normalized(data), weights)))
+
+    residuals = FundamentalModel.residuals
+    sampling_coordinates = FundamentalModel.sampling_coordinates
 
 
 class ResectionModel:

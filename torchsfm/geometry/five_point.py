@@ -58,18 +58,19 @@ def essential_constraints(basis: Tensor) -> Tensor:
     trace = EEt.diagonal(dim1=-3, dim2=-2).sum(-1)  # (*, 10)
     EEtE = _times(EEt[..., :, :, None, :], E[..., None, :, :, :], (2, 1)).sum(-3)  # (*, 3, 3, 20): Σ_k (EEᵀ)_ik E_kj
     cubic = 2 * EEtE - _times(trace[..., None, None, :], E, (2, 1))
-    minors = _times(E[..., 1, 1, :], E[..., 2, 2, :], (1, 1)) - _times(E[..., 1, 2, :], E[..., 2, 1, :], (1, 1))
-    minors = torch.stack([minors,
-                          _times(E[..., 1, 0, :], E[..., 2, 2, :], (1, 1)) - _times(E[..., 1, 2, :], E[..., 2, 0, :], (1, 1)),
-                          _times(E[..., 1, 0, :], E[..., 2, 1, :], (1, 1)) - _times(E[..., 1, 1, :], E[..., 2, 0, :], (1, 1))], -2)
+
+    def minor(a: int, b: int) -> Tensor:  # E_1a E_2b - E_1b E_2a, degree 2
+        return _times(E[..., 1, a, :], E[..., 2, b, :], (1, 1)) - _times(E[..., 1, b, :], E[..., 2, a, :], (1, 1))
+
+    minors = torch.stack([minor(1, 2), minor(0, 2), minor(0, 1)], -2)  # (*, 3, 10): the cofactors of row 0, unsigned
     signs = torch.tensor([1.0, -1.0, 1.0], dtype=basis.dtype, device=basis.device)[:, None]
     determinant = (_times(minors, E[..., 0, :, :], (2, 1)) * signs).sum(-2)  # (*, 20): expansion along row 0
     return torch.cat([determinant[..., None, :], cubic.flatten(-3, -2)], -2)
 
 
 # multiplication by x on the basis x², xy, xz, y², yz, z², x, y, z, 1 (columns 10..19 of MONOMIALS[3]):
-# the first six products are the eliminated cubics x³, x²y, x²z, xy², xyz, xz² (columns 0..5)
-_CUBIC_ROWS = [0, 1, 2, 3, 4, 5]
+# the first six products are the eliminated cubics x³, x²y, x²z, xy², xyz, xz² (columns and rows 0..5
+# of the reduced system); the other four land on the basis
 _SHIFTED = {6: 0, 7: 1, 8: 2, 9: 6}  # x·x = x², x·y = xy, x·z = xz, x·1 = x (basis positions)
 
 
@@ -91,7 +92,7 @@ def five_point_essential(x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:
     constraints = essential_constraints(basis)
     reduced, info = torch.linalg.solve_ex(constraints[..., :10], constraints[..., 10:])  # (*, 10, 10)
     action = torch.zeros_like(reduced)
-    action[..., :6, :] = -reduced[..., _CUBIC_ROWS, :]
+    action[..., :6, :] = -reduced[..., :6, :]
     for row, column in _SHIFTED.items():
         action[..., row, column] = 1.0
     values, vectors = torch.linalg.eig(action)  # vectors: the basis monomials at each solution

@@ -51,11 +51,7 @@ class FundamentalModel:
             F = eight_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2)  # (B, K, 3, 3)
             return F, torch.isfinite(F).flatten(-2).all(-1)
         F = seven_point_minimal(samples[..., :2], samples[..., 2:], self.T1, self.T2).flatten(1, 2)  # (B, 3K, 3, 3)
-        ok = torch.isfinite(F).flatten(-2).all(-1)
-        keep = max(1, int(ok.sum(1).max()))  # the real roots first, the batch cut to the most any problem has
-        order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
-        rows = torch.arange(F.shape[0], device=F.device)[:, None]
-        return F[rows, order], ok[rows, order]
+        return _solutions_first(F, torch.isfinite(F).flatten(-2).all(-1))
 
     def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
         return eight_point(data[..., :2], data[..., 2:], weights)
@@ -101,11 +97,7 @@ class EssentialModel:
 
     def fit_minimal(self, samples: Tensor) -> tuple[Tensor, Tensor]:
         E, ok = five_point_essential(*self._normalized(samples))  # (B, K, 10, 3, 3), (B, K, 10)
-        F, ok = self._fundamental(E).flatten(1, 2), ok.flatten(1)
-        keep = max(1, int(ok.sum(1).max()))  # the real solutions first, the batch cut to the most any problem has
-        order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
-        rows = torch.arange(F.shape[0], device=F.device)[:, None]
-        return F[rows, order], ok[rows, order]
+        return _solutions_first(self._fundamental(E).flatten(1, 2), ok.flatten(1))
 
     def fit_weighted(self, data: Tensor, weights: Tensor) -> Tensor:
         return self._fundamental(project_to_essential(eight_point(*self._normalized(data), weights)))
@@ -339,6 +331,15 @@ class ProjectiveResectionModel:
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., 4:]
+
+
+def _solutions_first(models: Tensor, ok: Tensor) -> tuple[Tensor, Tensor]:
+    """(B, M, ...) models of a solver with several solutions per sample and (B, M) ``ok`` (a real
+    solution): per problem the real ones first, every problem cut to the most any problem has."""
+    keep = max(1, int(ok.sum(1).max()))
+    order = ok.to(torch.int8).argsort(dim=1, descending=True, stable=True)[:, :keep]
+    rows = torch.arange(models.shape[0], device=models.device)[:, None]
+    return models[rows, order], ok[rows, order]
 
 
 def _restricted(model, problems: Tensor, *per_problem: str):

@@ -44,9 +44,12 @@ minimal-sample models:
    scene (``sizes`` and ``coverage`` are per label).
 6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
    it does not explain are cut out as bodies (:func:`settle_scene`, :func:`scene_excess`).
-   Given the number of motions, the settled partition is kept when it has that many; otherwise
-   the pieces are cut into that many (step 4 with the count given), unsettled — the number says
-   how many motions there are, the scene's geometry which tracks belong to it.
+   Given the number of motions, the settled partition is kept when it has that many. With
+   fewer, the motion whose cut in two gains most is cut until it has that many
+   (:func:`split_least_rigid`: two bodies taken for one); that partition or the pieces cut into
+   that many anew (step 4 with the count given, unsettled), whichever explains the tracks better
+   (:func:`partition_residual`). With more, the cut anew. The number says how many motions there
+   are, the scene's geometry which tracks belong to it.
 
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
@@ -120,8 +123,8 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         visible: (F, N) bool, where each track is seen (default: everywhere).
         config: the ``segmentation`` section (default settings if None).
         num_motions: the number of rigid motions, static scene included, when known (benchmarks
-            that are given it): the settled partition if it has that many, else the pieces cut
-            into that many; None finds it (model selection on the merges).
+            that are given it; step 6 of the module docstring); None finds it (model selection
+            on the merges).
         generator: random source of the hypotheses and of k-means.
 
     Returns:
@@ -177,7 +180,13 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
 
     labels = motions(None)  # given their number, a settled partition of that many motions is kept
     if num_motions is not None and int(labels.max()) + 1 != num_motions:
-        labels = motions(num_motions)
+        candidates = [motions(num_motions)]  # the pieces cut into that many anew
+        split = labels
+        while split is not None and int(split.max()) + 1 < num_motions:
+            split = split_least_rigid(tracks, visible, split, piece_of, affinity, index, config, generator)
+        if split is not None and int(split.max()) + 1 == num_motions:
+            candidates.append(split)
+        labels = min(candidates, key=lambda partition: partition_residual(tracks, visible, partition))
     num_motions = int(labels.max()) + 1
     if left_out.numel():
         labels[left_out] = label_by_residual(tracks, visible, labels, left_out, num_motions)
@@ -294,6 +303,63 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
     # the scene that judged the cut pieces still held them: without them its fit may explain one after all
     return join_explained(labels, scene_excess(tracks, visible, labels == 0, pairs, config, generator))
+
+
+def split_least_rigid(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
+                      clustered: Tensor, config: SegmentationConfig, generator: torch.Generator) -> Tensor | None:
+    """(N,) labels with one more motion: of the motions cut in two, the one whose cut explains
+    its tracks best relative to the motion whole.
+
+    Each motion with 2 × ``config.support`` clustered tracks is cut in two: its pieces merged
+    down to two (:func:`merge_clusters`) or a direct spectral cut of its own links, whichever has
+    the smaller normalized cut. The gain of a cut: the sum over the motion's tracks of their RMS
+    Sampson distance to one F per frame pair fitted to the whole motion (:func:`track_residuals`)
+    over the same with each part fitted on its own — two motions taken for one leave the
+    smaller one's tracks far from the whole's fit; a rigid motion's parts fit hardly better.
+    None when no motion can be cut.
+    """
+    count = int(labels.max()) + 1
+    within = labels[clustered]
+    wholes, seconds = [], []  # per cut: (N,) the motion, (N,) its part that becomes a new motion
+    for motion in range(count):
+        position = torch.nonzero(within == motion)[:, 0]
+        if position.numel() < 2 * config.support:
+            continue
+        links = affinity[position][:, position]
+        _, vectors = leading_eigenvectors(links, 2)
+        candidates = [largest_first(spectral_partition(vectors, 2, config, generator))]
+        _, piece_index = pieces[clustered[position]].unique(return_inverse=True)
+        if int(piece_index.max()) > 0:
+            candidates.append(merge_clusters(links, piece_index, 2, config))
+        part = min(candidates, key=lambda partition: normalized_cut(links, partition))
+        second = torch.zeros_like(labels, dtype=torch.bool)
+        second[clustered[position[part == 1]]] = True
+        wholes.append(labels == motion)
+        seconds.append(second)
+    if not wholes:
+        return None
+    whole, second = torch.stack(wholes), torch.stack(seconds)  # (M, N)
+    first = whole & ~second
+    M = whole.shape[0]
+    rms, judged = track_residuals(tracks, visible, torch.cat([whole, first, second]), frame_pairs(visible))
+    split = torch.where(second, rms[2 * M:], rms[M:2 * M])
+    held = whole & judged[:M] & torch.where(second, judged[2 * M:], judged[M:2 * M])
+    gain = torch.where(held, rms[:M], 0.0).sum(-1) / torch.where(held, split, 0.0).sum(-1).clamp_min(torch.finfo(rms.dtype).tiny)
+    clusters = labels.clone()
+    clusters[second[int(gain.argmax())]] = count
+    return scene_first(tracks, visible, clusters)
+
+
+def partition_residual(tracks: Tensor, visible: Tensor, labels: Tensor) -> float:
+    """How well a partition's motions explain the tracks: the mean over the tracks of their RMS
+    Sampson distance to one F per frame pair fitted to their motion (:func:`track_residuals`),
+    the best of the motions for an unassigned track: (F, N, 2) tracks, (F, N) visibility, (N,)
+    labels 0..k (-1 unassigned)."""
+    members = labels[None] == torch.arange(int(labels.max()) + 1, device=labels.device)[:, None]
+    rms, judged = track_residuals(tracks, visible, members, frame_pairs(visible))
+    rms = torch.where(judged, rms, torch.inf)
+    own = torch.where(labels >= 0, rms.gather(0, labels.clamp_min(0)[None])[0], rms.amin(0))
+    return float(own[own.isfinite()].mean())
 
 
 def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, config: SegmentationConfig) -> Tensor:

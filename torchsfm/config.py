@@ -430,7 +430,10 @@ class ReconstructionConfig:
     adjustment of the W newest views and the points they see (the older views that see those points hold
     them fixed), so a long sequence's poses stay adjusted at a cost bounded by W, not by its length;
     then, ``retriangulations`` times, the tracks without a point are triangulated again from the
-    adjusted cameras and the model adjusted once more. The pipeline's adjustments use the robust
+    adjusted cameras and the model adjusted once more; then once with every observation within twice
+    ``max_reprojection_error`` (those the gate dropped against earlier cameras, which the later
+    adjustments fitted their points without), before the gate drops outliers for the last
+    adjustment. The pipeline's adjustments use the robust
     ``bundle_loss`` (at ``bundle_adjustment.loss_scale`` px): real matches hold outliers that
     survive the epipolar and reprojection tests (``bundle_adjustment.loss`` stays the plain least
     squares of :func:`torchsfm.bundle_adjust`). Without K, the last adjustments also refine the

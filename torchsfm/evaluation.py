@@ -1,5 +1,5 @@
-"""Comparing results with the ground truth: cameras after a similarity alignment, pose errors,
-inlier masks, moving-object decisions, motion labels."""
+"""Comparing results with the ground truth: cameras and point sets after a similarity alignment,
+pose errors, inlier masks, moving-object decisions, motion labels."""
 
 from __future__ import annotations
 
@@ -55,6 +55,20 @@ def camera_errors(R: Tensor, t: Tensor, R_true: Tensor, t_true: Tensor) -> Camer
     relative = rotation_angle(R[pairs[0]] @ R[pairs[1]].transpose(-1, -2), R_true[pairs[0]] @ R_true[pairs[1]].transpose(-1, -2))
     extent = float((true_centres.amax(0) - true_centres.amin(0)).norm())
     return CameraErrors(centre=centre, extent=extent, rotation=rotation, relative_rotation=relative)
+
+
+def shape_errors(points: Tensor, true_points: Tensor) -> Tensor:
+    """(P,) distances between (P, 3) estimated points, similarity-aligned to their (P, 3) true
+    positions (Umeyama 1991: the scale, rotation and offset minimizing the squared distances),
+    and the true positions, in ground-truth units: the error of a shape whose scale is its own."""
+    mean, true_mean = points.mean(0), true_points.mean(0)
+    centred, true_centred = points - mean, true_points - true_mean
+    U, S, Vh = torch.linalg.svd(true_centred.T @ centred)
+    flip = torch.ones(3, dtype=points.dtype, device=points.device)
+    flip[2] = torch.sign(torch.linalg.det(U @ Vh))
+    A = U @ torch.diag(flip) @ Vh
+    scale = (S * flip).sum() / floor_tiny(centred.square().sum())
+    return (scale * centred @ A.T - true_centred).norm(dim=-1)
 
 
 def misclassification(labels: Tensor, truth: Tensor) -> float:

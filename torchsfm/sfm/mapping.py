@@ -591,6 +591,12 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         for view in torch.nonzero(model.registered).flatten().tolist():
             timed("triangulation", lambda: model.triangulate_new(view))
         timed("bundle adjustment", lambda: bundle(model, config, first))
+    # an observation gated out against earlier, rougher cameras stays out of every later adjustment,
+    # which fits its point without it: one adjustment with those within twice the gate (a point fitted
+    # to them moves toward them; the robust loss bounds the pull of the ones that do not fit) lets
+    # those that fit back in before the gate is applied again
+    readmitted = model.observation_errors() < 2 * config.reconstruction.max_reprojection_error
+    timed("bundle adjustment", lambda: bundle(model, config, first, usable=readmitted))
     # drop outlier observations and weak points, then adjust once more
     errors = model.observation_errors()
     inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())

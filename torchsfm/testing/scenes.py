@@ -167,6 +167,8 @@ class MovingObjectScene:
             frame): its points at frame f are object_rotations[k - 1, f] (X - c) + c' for its
             frame-0 points X, centre c, and centre c' at f.
         object_centres: (num_objects, F, 3) each object's centre c' per frame (world).
+        points: (N, 3) each track's point in the world at frame 0 (an object's point moves with
+            it as above); NaN for outliers.
     """
 
     K: Tensor
@@ -177,6 +179,7 @@ class MovingObjectScene:
     image_size: tuple[int, int]
     object_rotations: Tensor
     object_centres: Tensor
+    points: Tensor
 
 
 def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
@@ -224,7 +227,7 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     pixels, ok = inside(static.expand(num_frames, -1, -1))
     keep = torch.nonzero(ok).flatten()
     keep = keep[torch.randperm(keep.numel(), generator=g)[:background_points]]
-    tracks, labels = [pixels[:, keep]], [torch.zeros(keep.numel(), dtype=torch.long)]
+    tracks, labels, points = [pixels[:, keep]], [torch.zeros(keep.numel(), dtype=torch.long)], [static[keep]]
     object_rotations = torch.eye(3, dtype=torch.float64).repeat(num_objects, num_frames, 1, 1)
     object_centres = torch.zeros(num_objects, num_frames, 3, dtype=torch.float64)
     for k in range(1, num_objects + 1):
@@ -244,6 +247,7 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
         pixels, ok = inside(torch.stack(frames))
         chosen = torch.nonzero(ok).flatten()[:object_points]
         tracks.append(pixels[:, chosen])
+        points.append(body[chosen])
         labels.append(torch.full((chosen.numel(),), k, dtype=torch.long))
     tracks = torch.cat(tracks, 1)
     tracks = tracks + noise * torch.randn(tracks.shape, generator=g, dtype=torch.float64)
@@ -252,9 +256,10 @@ def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int =
     outliers = torch.stack([_uniform((num_frames, num_outliers), 0, W, g), _uniform((num_frames, num_outliers), 0, H, g)], -1)
     tracks = torch.cat([tracks, outliers], 1)
     labels = torch.cat([labels, torch.full((num_outliers,), -1, dtype=torch.long)])
+    points = torch.cat([*points, torch.full((num_outliers, 3), torch.nan, dtype=torch.float64)])
     order = torch.randperm(labels.numel(), generator=g)
     return MovingObjectScene(K=K, R=R, t=t, tracks=tracks[:, order], labels=labels[order], image_size=(W, H),
-                             object_rotations=object_rotations, object_centres=object_centres)
+                             object_rotations=object_rotations, object_centres=object_centres, points=points[order])
 
 
 def board_poses(num_views: int, seed: int, distance: float = 10.0, spread: float = 2.5) -> tuple[Tensor, Tensor]:

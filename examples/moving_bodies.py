@@ -38,19 +38,11 @@ def scene_errors(model, scene) -> tuple[float, float]:
     return float(errors.rotation.max()), 100 * float(errors.centre.max()) / errors.extent
 
 
-def body_poses(scene, body: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The camera's true poses relative to body ``body`` (1..k) in every frame, (F, 3, 3) and
-    (F, 3): the body's frame is the world at frame 0, so they are R_f O_f and
-    R_f (c_f - O_f c_0) + t_f."""
-    O, c = scene.object_rotations[body - 1], scene.object_centres[body - 1]
-    return scene.R @ O, (scene.R @ (c - (O @ c[0][:, None])[..., 0])[..., None])[..., 0] + scene.t
-
-
 def body_errors(R, t, points, point_tracks, scene, body: int) -> tuple[float, float, float]:
     """(largest per-frame rotation error in degrees, RMS and largest shape error in % of its size)
     of a model of body ``body`` with cameras (F, 3, 3), (F, 3) in every frame (relative to the
     body) and (P, 3) points of the input tracks ``point_tracks`` (P,)."""
-    R_true, t_true = body_poses(scene, body)
+    R_true, t_true = scene.body_cameras(body)
     rotation = float(camera_errors(R, t, R_true, t_true).rotation.max())
     own = scene.labels[point_tracks] == body
     true_points = scene.points[point_tracks[own]]
@@ -64,7 +56,7 @@ def oracle_errors(scene, body: int) -> tuple[float, float, float]:
     adjustment of every observation started from the truth (the first camera held) — the noise's
     limit for this body, whatever the segmentation and the mapper do."""
     tracks = torch.nonzero(scene.labels == body).flatten()
-    R, t = body_poses(scene, body)
+    R, t = scene.body_cameras(body)
     F, P = R.shape[0], tracks.numel()
     fixed = torch.zeros(F, dtype=torch.bool)
     fixed[0] = True

@@ -84,13 +84,26 @@ def test_a_small_body_keeps_the_observations_its_early_cameras_gated_out():
     box = torch.nonzero(scene.labels == 1).flatten()
     model = reconstruct_tracks(scene.tracks[:, box], scene.K, generator=torch.Generator().manual_seed(0))
     assert model.view_indices == [0, 1, 2, 3, 4] and model.observation_errors().numel() >= 297
-    O, c = scene.object_rotations[0], scene.object_centres[0]  # the camera relative to the box
-    R_true = scene.R @ O
-    t_true = (scene.R @ (c - (O @ c[0][:, None])[..., 0])[..., None])[..., 0] + scene.t
+    R_true, t_true = scene.body_cameras(1)
     assert float(camera_errors(model.cameras.R, model.cameras.t, R_true, t_true).rotation.max()) < 0.3
     true_points = scene.points[box[model.point_tracks]]
     size = (true_points.amax(0) - true_points.amin(0)).norm()
     assert float(shape_errors(model.points3d, true_points).square().mean().sqrt() / size) < 0.01
+
+
+def test_a_small_body_is_reconstructed_from_the_best_of_several_starts():
+    """A box whose initial pair with most inliers (frames 1, 2: 58 against 55) has a relative
+    pose 44 deg off in translation: from one start the body's model ends in a worse optimum
+    (measured 11.5 deg per-frame rotation error; bundle adjustment from the truth: 0.17 deg);
+    the best of ``moving_objects.object_starts`` = 3 by MSAC's cost reaches 0.16 deg."""
+    scene = synthetic_moving_scene(4, num_frames=5, num_objects=3, object_points=60, noise=0.5)
+    result = reconstruct_motions(scene.tracks, scene.K, generator=torch.Generator().manual_seed(4))
+    box = scene.labels == 2
+    label = max((label for label in result.track_indices if label > 0), key=lambda label: int(box[result.track_indices[label]].sum()))
+    model = result.models[label]
+    assert model.view_indices == [0, 1, 2, 3, 4]
+    R_true, t_true = scene.body_cameras(2)
+    assert float(camera_errors(model.cameras.R, model.cameras.t, R_true, t_true).rotation.max()) < 0.5
 
 
 def test_bad_input_is_named():

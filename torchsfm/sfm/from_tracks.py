@@ -6,7 +6,8 @@ frames 1, 2, 4, 8, ... after it: a video's short and long baselines without ever
 the mapper of :mod:`torchsfm.sfm.mapping` on them. :func:`reconstruct_motions` segments the
 tracks into rigid motions (:func:`~torchsfm.moving.segmentation.segment_motions`) and
 reconstructs each: the static scene with the camera's poses, and every moving body in its own
-frame — the camera's poses relative to the body, and the body's shape (up to its own scale).
+frame — the camera's poses relative to the body, and the body's shape (up to its own scale) —
+from several starts (:func:`reconstruct_body`).
 :class:`ReconstructObjects` is the image pipeline's stage that does the same for the moving
 bodies the segmentation found in a :class:`~torchsfm.sfm.stages.ViewSet`.
 """
@@ -133,8 +134,9 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
     result = MotionModels(segmentation=segmentation)
     for label in range(segmentation.num_motions):
         members = torch.nonzero(segmentation.labels == label).flatten()
+        reconstruct = reconstruct_tracks if label == 0 else reconstruct_body
         try:
-            model = reconstruct_tracks(tracks[:, members], K, visible[:, members], config=config, generator=generator)
+            model = reconstruct(tracks[:, members], K, visible[:, members], config=config, generator=generator)
         except TorchSfmError as error:
             result.failed[label] = f"{members.numel()} tracks: {error}"
             continue
@@ -142,6 +144,31 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
             part.point_tracks = members[part.point_tracks]  # indices into the input tracks
         result.models[label], result.track_indices[label] = model, members
     return result
+
+
+def reconstruct_body(tracks: Tensor, K: Tensor, visible: Tensor | None = None, *, config: Config,
+                     generator: torch.Generator) -> Reconstruction:
+    """A moving body's model from its (F, N, 2) tracks (K (3, 3) or (F, 3, 3), (F, N) visibility):
+    :func:`reconstruct_tracks` from ``moving_objects.object_starts`` independent draws of the
+    ``generator``; of the models, the one that registers most frames, then has the smallest
+    truncated squared reprojection error over the observations (MSAC's cost: an observation
+    outside the gate T = ``reconstruction.max_reprojection_error`` costs T², one inside its
+    squared error; the observations are the same for every start). Raises the last start's
+    error when no start gives a model."""
+    best, failure, gate = None, None, config.reconstruction.max_reprojection_error
+    for _ in range(config.moving_objects.object_starts):
+        try:
+            model = reconstruct_tracks(tracks, K, visible, config=config, generator=generator)
+        except TorchSfmError as error:
+            failure = error
+            continue
+        errors = model.observation_errors()
+        rank = (model.num_views, float((gate ** 2 - errors.square()).sum()))
+        if best is None or rank > best[0]:
+            best = (rank, model)
+    if best is None:
+        raise failure
+    return best[1]
 
 
 def consistent_with_scene(pixels: Tensor, visible: Tensor, K: Tensor, scene: Reconstruction, threshold: float) -> tuple[Tensor, Tensor]:
@@ -220,8 +247,8 @@ class ReconstructObjects(ConfiguredStage):
                            f"(needs {settings.min_object_tracks}: moving_objects.min_object_tracks)")
         else:
             try:
-                body.model = reconstruct_tracks(pixels[:, long_enough], state.K, visible[:, long_enough], config=self.config,
-                                                generator=state.generator)
+                body.model = reconstruct_body(pixels[:, long_enough], state.K, visible[:, long_enough], config=self.config,
+                                              generator=state.generator)
                 body.model.image_names = [state.names[v] for v in body.model.view_indices]
                 scene = state.reconstruction  # each view's size as the scene has it (a view it lacks: its first view's)
                 size_of = dict(zip(scene.view_indices, scene.image_sizes.tolist()))

@@ -181,6 +181,13 @@ class MovingObjectScene:
     object_centres: Tensor
     points: Tensor
 
+    def body_cameras(self, body: int) -> tuple[Tensor, Tensor]:
+        """The camera's true poses relative to object ``body`` (1..k) in every frame, (F, 3, 3) and
+        (F, 3): the object's frame is the world at frame 0, so they are R_f O_f and
+        R_f (c_f - O_f c_0) + t_f (O the object's rotations, c its centres)."""
+        O, c = self.object_rotations[body - 1], self.object_centres[body - 1]
+        return self.R @ O, (self.R @ (c - (O @ c[0][:, None])[..., 0])[..., None])[..., 0] + self.t
+
 
 def synthetic_moving_scene(seed: int, *, num_frames: int = 3, num_objects: int = 2, background_points: int = 400,
                            object_points: int = 60, outlier_fraction: float = 0.1, noise: float = 0.3,

@@ -14,7 +14,7 @@ bodies the segmentation found in a :class:`~torchsfm.sfm.stages.ViewSet`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 from torch import Tensor
@@ -150,12 +150,17 @@ def reconstruct_body(tracks: Tensor, K: Tensor, visible: Tensor | None = None, *
                      generator: torch.Generator) -> Reconstruction:
     """A moving body's model from its (F, N, 2) tracks (K (3, 3) or (F, 3, 3), (F, N) visibility):
     :func:`reconstruct_tracks` from ``moving_objects.object_starts`` independent draws of the
-    ``generator``; of the models, the one that registers most frames, then has the smallest
+    ``generator``, its points kept where seen within the gate in ``moving_objects.min_object_frames``
+    views (a body's tracks are that long; a stray track the segmentation let in fits two views by
+    chance, not three); of the models, the one that registers most frames, then has the smallest
     truncated squared reprojection error over the observations (MSAC's cost: an observation
     outside the gate T = ``reconstruction.max_reprojection_error`` costs T², one inside its
     squared error; the observations are the same for every start). Raises the last start's
     error when no start gives a model."""
-    best, failure, gate = None, None, config.reconstruction.max_reprojection_error
+    settings = config.reconstruction
+    views = max(settings.min_track_views, config.moving_objects.min_object_frames)
+    config = replace(config, reconstruction=replace(settings, min_track_views=views))
+    best, failure, gate = None, None, settings.max_reprojection_error
     for _ in range(config.moving_objects.object_starts):
         try:
             model = reconstruct_tracks(tracks, K, visible, config=config, generator=generator)

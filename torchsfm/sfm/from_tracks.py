@@ -132,6 +132,7 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
     tracks, visible = check_tracks(tracks, visible)
     segmentation = segment_motions(tracks, visible, config=config.segmentation, num_motions=num_motions, generator=generator)
     result = MotionModels(segmentation=segmentation)
+    config = with_track_views(config, min(config.segmentation.min_frames, tracks.shape[0]))
     for label in range(segmentation.num_motions):
         members = torch.nonzero(segmentation.labels == label).flatten()
         reconstruct = reconstruct_tracks if label == 0 else reconstruct_body
@@ -146,21 +147,24 @@ def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None
     return result
 
 
+def with_track_views(config: Config, views: int) -> Config:
+    """``config`` with points kept only where seen within the gate in ``views`` views (at least
+    ``reconstruction.min_track_views``): for tracks selected for being seen that often, a track
+    of another motion that the segmentation let in fits two views by chance, not three."""
+    settings = config.reconstruction
+    return replace(config, reconstruction=replace(settings, min_track_views=max(settings.min_track_views, views)))
+
+
 def reconstruct_body(tracks: Tensor, K: Tensor, visible: Tensor | None = None, *, config: Config,
                      generator: torch.Generator) -> Reconstruction:
     """A moving body's model from its (F, N, 2) tracks (K (3, 3) or (F, 3, 3), (F, N) visibility):
     :func:`reconstruct_tracks` from ``moving_objects.object_starts`` independent draws of the
-    ``generator``, its points kept where seen within the gate in ``moving_objects.min_object_frames``
-    views (a body's tracks are that long; a stray track the segmentation let in fits two views by
-    chance, not three); of the models, the one that registers most frames, then has the smallest
+    ``generator``; of the models, the one that registers most frames, then has the smallest
     truncated squared reprojection error over the observations (MSAC's cost: an observation
     outside the gate T = ``reconstruction.max_reprojection_error`` costs T², one inside its
     squared error; the observations are the same for every start). Raises the last start's
     error when no start gives a model."""
-    settings = config.reconstruction
-    views = max(settings.min_track_views, config.moving_objects.min_object_frames)
-    config = replace(config, reconstruction=replace(settings, min_track_views=views))
-    best, failure, gate = None, None, settings.max_reprojection_error
+    best, failure, gate = None, None, config.reconstruction.max_reprojection_error
     for _ in range(config.moving_objects.object_starts):
         try:
             model = reconstruct_tracks(tracks, K, visible, config=config, generator=generator)
@@ -252,8 +256,8 @@ class ReconstructObjects(ConfiguredStage):
                            f"(needs {settings.min_object_tracks}: moving_objects.min_object_tracks)")
         else:
             try:
-                body.model = reconstruct_body(pixels[:, long_enough], state.K, visible[:, long_enough], config=self.config,
-                                              generator=state.generator)
+                body.model = reconstruct_body(pixels[:, long_enough], state.K, visible[:, long_enough],
+                                              config=with_track_views(self.config, settings.min_object_frames), generator=state.generator)
                 body.model.image_names = [state.names[v] for v in body.model.view_indices]
                 scene = state.reconstruction  # each view's size as the scene has it (a view it lacks: its first view's)
                 size_of = dict(zip(scene.view_indices, scene.image_sizes.tolist()))

@@ -59,6 +59,23 @@ def test_given_number_of_motions_is_used():
         segment_motions(data.tracks, num_motions=0)
 
 
+def test_two_bodies_taken_for_one_are_cut_apart():
+    """Two 60-track boxes given one label: of the motions cut in two, the merged one gains most
+    (its parts fit one F per frame pair each far better than together) and its cut separates the
+    boxes exactly (seed 3; a background half on one wall can gain more: seed 2 cuts it, see
+    split_least_rigid)."""
+    from torchsfm.moving.segmentation import split_least_rigid
+
+    data = scene(3, 2)
+    found = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
+    inliers = data.labels >= 0
+    assert found.num_motions == 3 and misclassification(found.labels[inliers], data.labels[inliers]) == 0.0
+    merged = found.labels.clamp_max(1)
+    split = split_least_rigid(data.tracks, torch.ones(data.tracks.shape[:2], dtype=torch.bool), merged, found.pieces,
+                              found.affinity, found.clustered, SegmentationConfig(), torch.Generator().manual_seed(0))
+    assert misclassification(split[inliers], data.labels[inliers]) == 0.0
+
+
 def test_the_round_budget_is_shared_by_the_kinds_used(monkeypatch):
     """``segmentation.hypotheses`` per round, split evenly: 1333 each of F, affine and plane
     hypotheses on five frames; on two frames the plane kind is left out and F and affine get

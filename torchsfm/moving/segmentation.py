@@ -316,7 +316,9 @@ def split_least_rigid(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: T
     Sampson distance to one F per frame pair fitted to the whole motion (:func:`track_residuals`)
     over the same with each part fitted on its own — two motions taken for one leave the
     smaller one's tracks far from the whole's fit; a rigid motion's parts fit hardly better.
-    None when no motion can be cut.
+    Known limit: the trimmed fit of a motion half of whose tracks lie on one plane is degenerate,
+    and cutting it gains too (a synthetic background half on one wall: cut instead of two boxes
+    merged). None when no motion can be cut.
     """
     count = int(labels.max()) + 1
     within = labels[clustered]

@@ -34,3 +34,33 @@ def test_transfer_errors_of_many_hypotheses_equal_one_at_a_time():
     written_out = torch.stack([(from_homogeneous(to_homogeneous(x1) @ h.T) - x2).square().sum(-1) for h in H[1:]])
     assert_close(batched[1:], written_out, rtol=1e-12, atol=0)
     assert_close(transfer_error(H, x1.expand(7, -1, -1), x2.expand(7, -1, -1)), batched, rtol=1e-12, atol=0)
+
+
+def test_decomposition_recovers_the_motion_and_plane():
+    """H = s (R + t nᵀ) for 50 random motions and planes in front of camera 1 (any positive
+    scale s): one of the four decompositions is (R, t, n) to 1e-9 (float64); the four come in
+    pairs (R, t, n), (R, -t, -n). A pure image translation (a fronto-parallel plane, a camera
+    sliding along it) gives R = I, n = (0, 0, 1)."""
+    from torchsfm.geometry.homography import decompose_homography
+    from torchsfm.geometry.rotation import axis_angle_to_rotation
+
+    generator = torch.Generator().manual_seed(3)
+    for _ in range(50):
+        R = axis_angle_to_rotation(0.4 * torch.randn(3, generator=generator, dtype=torch.float64))
+        t = 0.5 * torch.randn(3, generator=generator, dtype=torch.float64)
+        n = torch.randn(3, generator=generator, dtype=torch.float64)
+        n[2] = n[2].abs() + 0.5
+        n = n / n.norm()
+        scale = 0.1 + 5 * float(torch.rand(1, generator=generator))
+        Rs, ts, ns = decompose_homography(scale * (R + torch.outer(t, n) / 3.0))
+        assert_close(Rs[1::2], Rs[0::2], rtol=0, atol=0)
+        assert_close(ts[1::2], -ts[0::2], rtol=0, atol=0)
+        assert_close(ns[1::2], -ns[0::2], rtol=0, atol=0)
+        error = ((Rs - R).abs().amax((-1, -2)) + (ts - t / 3.0).abs().amax(-1) + (ns - n).abs().amax(-1))
+        assert float(error.min()) < 1e-9
+    H = torch.eye(3, dtype=torch.float64)
+    H[:2, 2] = torch.tensor([0.1, -0.04], dtype=torch.float64)
+    Rs, ts, ns = decompose_homography(H)
+    found = int(((ns - torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)).norm(dim=-1)).argmin())
+    assert_close(Rs[found], torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-12)
+    assert_close(ts[found], H[:, 2] - torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), rtol=0, atol=1e-12)

@@ -51,3 +51,32 @@ def homography_jacobian(H: Tensor, x: Tensor) -> Tensor:
     h = torch.cat([x, torch.ones_like(x[:, :1])], dim=-1) @ H.T  # (N, 3)
     mapped = h[:, :2] / h[:, 2:]
     return (H[None, :2, :2] - mapped[:, :, None] * H[None, 2:, :2]) / h[:, 2, None, None]
+
+
+def decompose_homography(H: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The four motions and planes of a calibrated homography (3, 3), H ~ R + t nᵀ (x2 ~ H x1 in
+    normalized coordinates, X2 = R X1 + t, the plane nᵀ X1 = 1 in camera 1's frame: t is the
+    translation over the plane's distance). The analytic decomposition of Ma, Soatto, Košecká
+    and Sastry (An Invitation to 3-D Vision, §5.3.3): H is scaled to unit middle singular value
+    with the sign that makes x2ᵀ H x1 positive, which the caller ensures (``H`` as given here is
+    that one). Returns R (4, 3, 3), t (4, 3), n (4, 3) (unit); in pairs (R, t, n), (R, -t, -n),
+    of which the points in front of camera 1 (nᵀ x1 > 0) choose at most two. A pure rotation
+    (no translation) leaves n free: t is then 0 in every solution. Float64."""
+    H = H.double()
+    H = H / torch.linalg.svdvals(H)[1]
+    squared, V = torch.linalg.eigh(H.T @ H)  # ascending: σ3², σ2² (= 1), σ1²
+    V = V.flip(-1) * torch.linalg.det(V)  # columns v1, v2, v3 in SO(3)
+    s1, s3 = float(squared[2]), float(squared[0])
+    v1, v2, v3 = V.unbind(-1)
+    spread = max(s1 - s3, 1e-24)
+    a, b = max(1.0 - s3, 0.0) ** 0.5 / spread ** 0.5, max(s1 - 1.0, 0.0) ** 0.5 / spread ** 0.5
+    solutions = []
+    for u in (a * v1 + b * v3, a * v1 - b * v3):
+        U = torch.stack([v2, u, torch.linalg.cross(v2, u)], dim=-1)
+        W = torch.stack([H @ v2, H @ u, torch.linalg.cross(H @ v2, H @ u)], dim=-1)
+        R = W @ U.T
+        n = torch.linalg.cross(v2, u)
+        t = (H - R) @ n
+        solutions += [(R, t, n), (R, -t, -n)]
+    R, t, n = (torch.stack(parts) for parts in zip(*solutions))
+    return R, t, n

@@ -176,7 +176,13 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
         clusters[index] = found
         labels = scene_first(tracks, visible, clusters)
-        return labels if count is not None else settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
+        if count is not None:
+            return labels
+        settled = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
+        rechosen = scene_first(tracks, visible, settled)  # settling can leave another motion covering most of the image
+        if torch.equal(rechosen == 0, settled == 0):
+            return settled
+        return settle_scene(tracks, visible, rechosen, piece_of, affinity, index, config, generator)
 
     labels = motions(None)  # given their number, a settled partition of that many motions is kept
     if num_motions is not None and int(labels.max()) + 1 != num_motions:

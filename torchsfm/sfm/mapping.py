@@ -22,6 +22,7 @@ from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.ragged import pad_rows
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
+from torchsfm.estimators.planar_pose import choose_by_normal, planar_poses
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 from torchsfm.numerics import floor_tiny
@@ -154,6 +155,45 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
             continue
         return (i, j), pose.R, pose.t, "; ".join(rejected)
     raise DegenerateConfigurationError("no view pair can start the reconstruction (" + ("; ".join(rejected) or "no pair has enough verified matches") + ")")
+
+
+def planar_initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor], K: Tensor, config: Config,
+                        generator: torch.Generator) -> tuple[tuple[int, int], Tensor, Tensor, str]:
+    """The first pair of a planar scene, where :func:`initial_pair` refused every pair because a
+    homography explains it: by inlier count, the first homography-explained pair whose motion
+    from the homography (:func:`~torchsfm.estimators.planar_pose.planar_poses`; of twin motions
+    the one whose plane agrees with the first view's other planar pairs,
+    :func:`~torchsfm.estimators.planar_pose.choose_by_normal`) triangulates its inliers with a
+    median angle of ``min_initial_angle``. Same return as :func:`initial_pair`."""
+    settings = config.reconstruction
+    planar = {key: match for key, match in pairs.items() if match.homography_ratio > settings.max_homography_ratio}
+    rejected = []
+
+    def motions(view: int, other: int, match: PairMatches) -> list:
+        index_view, index_other = (match.index1, match.index2) if view < other else (match.index2, match.index1)
+        return planar_poses(corners[view][index_view], corners[other][index_other], K[view], K[other], config=config, generator=generator)
+
+    for (i, j), match in sorted(planar.items(), key=lambda item: -item[1].index1.numel()):
+        try:
+            poses = motions(i, j, match)
+        except TorchSfmError as error:
+            rejected.append(f"{i}-{j}: {error}")
+            continue
+        others = []
+        for (a, b), other in planar.items() if len(poses) > 1 else ():
+            if i in (a, b) and (a, b) != (i, j):
+                try:
+                    others.append(torch.stack([pose.normal for pose in motions(i, a + b - i, other)]))
+                except TorchSfmError:
+                    continue
+        pose = choose_by_normal(poses, others)
+        angle = float(triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), -pose.R.T @ pose.t).median())
+        if angle < settings.min_initial_angle:
+            rejected.append(f"{i}-{j}: median triangulation angle {angle:.2f} deg (from its homography)")
+            continue
+        return (i, j), pose.R, pose.t, "; ".join(rejected)
+    raise DegenerateConfigurationError("no planar pair can start the reconstruction from its homography ("
+                                       + ("; ".join(rejected) or "no pair is explained by a homography") + ")")
 
 
 def parallax_angles(matches: list[PairMatches], keys: list[tuple[int, int]], corners: list[Tensor], K: Tensor) -> Tensor:
@@ -514,10 +554,16 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
                 (first, second), R, t, _ = timed("initial pair", lambda: initial_pair({**pairs, **wider}, state.corners, state.K, relaxed,
                                                                                        state.generator))
             except DegenerateConfigurationError:
-                raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error}); "
-                                                   f"nor any at half the angle, {halved:g} deg") from None
-            state.report(f"no pair reaches {config.reconstruction.min_initial_angle:g} deg of triangulation angle: "
-                         f"started from {first}-{second} at half of it")
+                try:  # a plane (a wall, a flat moving object): every pair refused for its homography
+                    (first, second), R, t, _ = timed("initial pair", lambda: planar_initial_pair({**pairs, **wider}, state.corners,
+                                                                                                 state.K, config, state.generator))
+                except DegenerateConfigurationError as planar_error:
+                    raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error}); "
+                                                       f"nor any at half the angle, {halved:g} deg; {planar_error}") from None
+                state.report(f"every pair is explained by a homography: started from {first}-{second}, posed from its homography")
+            else:
+                state.report(f"no pair reaches {config.reconstruction.min_initial_angle:g} deg of triangulation angle: "
+                             f"started from {first}-{second} at half of it")
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True

@@ -135,12 +135,15 @@ class MatchPairs(ConfiguredStage):
 
 
 class VerifyPairs(ConfiguredStage):
-    """Robust F and the homography test of every matched pair: fills ``pairs``."""
+    """Robust F and the homography test of every matched pair (with moving bodies to reconstruct,
+    a second motion's matches too): fills ``pairs``."""
 
-    SECTIONS = ("fundamental", "lm", "reconstruction")
+    SECTIONS = ("fundamental", "lm", "reconstruction", "moving_objects")
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.pairs = verify_pairs(state.putative, state.corners, self.config, state.generator, state.report)
+        objects = self.config.moving_objects
+        state.pairs = verify_pairs(state.putative, state.corners, self.config, state.generator, state.report,
+                                   other_motions=objects.enabled and objects.reconstruct_objects)
         return state
 
 
@@ -167,11 +170,12 @@ class SelfCalibrate(ConfiguredStage):
 
 
 class BuildTracks(nn.Module):
-    """Chain the verified matches into tracks: fills ``tracks``."""
+    """Chain the verified matches (and the other motions' matches, where verification kept them) into tracks: fills ``tracks``."""
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.tracks = build_tracks([c.shape[0] for c in state.corners],
-                                    {key: (m.index1, m.index2) for key, m in state.pairs.items()})
+        matches = {key: (m.index1, m.index2) if m.other_motion is None else
+                   (torch.cat([m.index1, m.other_motion[0]]), torch.cat([m.index2, m.other_motion[1]])) for key, m in state.pairs.items()}
+        state.tracks = build_tracks([c.shape[0] for c in state.corners], matches)
         state.report(f"{state.tracks.num_tracks} tracks from {len(state.pairs)} verified pairs")
         return state
 

@@ -36,10 +36,17 @@ FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a 
 
 @dataclass
 class PairMatches:
+    """The verified matches of a view pair (i, j), i < j: corner indices ``index1`` (M,) in view
+    i and ``index2`` (M,) in view j, F's inliers; ``homography_ratio``: the share of them a
+    homography explains; ``F`` (3, 3), x_jᵀ F x_i = 0. ``other_motion``: the (M', ) index pairs
+    of a second rigid motion among F's outliers (a moving object), where it was looked for and
+    found; they join the tracks, not the pair's own geometry."""
+
     index1: Tensor
     index2: Tensor
     homography_ratio: float
     F: Tensor
+    other_motion: tuple[Tensor, Tensor] | None = None
 
 
 def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
@@ -183,10 +190,13 @@ def patch_warps(H: Tensor, points: Tensor) -> Tensor | None:
 
 
 def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners: list[Tensor], config: Config,
-                  generator: torch.Generator, report: Progress) -> dict[tuple[int, int], PairMatches]:
+                 generator: torch.Generator, report: Progress, other_motions: bool = False) -> dict[tuple[int, int], PairMatches]:
     """Robust F of every pair (the undistorted ``corners``), then the homography test on F's
     inliers; pairs keeping ``min_pair_inliers`` survive. Both run as ragged batches of
-    ``VERIFY_BATCH`` pairs (one call each: the engine's rounds run on the pairs still drawing)."""
+    ``VERIFY_BATCH`` pairs (one call each: the engine's rounds run on the pairs still drawing).
+    With ``other_motions`` (moving bodies to be reconstructed), a second F is fitted to each
+    pair's outliers, and where it keeps ``moving_objects.min_object_tracks`` of them they are
+    the pair's ``other_motion``: a moving object's matches, which one F per pair throws away."""
     report(f"verifying {len(putative)} pairs")
     homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
     keys = list(putative)
@@ -202,11 +212,23 @@ def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners
         homography = ransac(HomographyModel(data[kept], inliers[kept]), data[kept], homography_config, valid=inliers[kept],
                             generator=generator)
         ratios = homography.inlier_mask.sum(-1) / inliers[kept].sum(-1)
-        for b, ratio in zip(kept.tolist(), ratios.tolist()):
+        others = second_motions(data[kept], valid[kept] & ~inliers[kept], config, generator) if other_motions else [None] * kept.numel()
+        for b, ratio, other in zip(kept.tolist(), ratios.tolist(), others):
             index1, index2 = putative[chunk[b]]
             mask = inliers[b, : index1.numel()]
-            result[chunk[b]] = PairMatches(index1[mask], index2[mask], ratio, fundamental.F[b])
+            other = None if other is None else (index1[other[: index1.numel()]], index2[other[: index1.numel()]])
+            result[chunk[b]] = PairMatches(index1[mask], index2[mask], ratio, fundamental.F[b], other)
     return result
+
+
+def second_motions(data: Tensor, outliers: Tensor, config: Config, generator: torch.Generator) -> list[Tensor | None]:
+    """Per pair of (B, N, 4) correspondences, the (N,) mask of a second F's inliers among the
+    (B, N) ``outliers`` of the first, or None where fewer than ``moving_objects.min_object_tracks``
+    fit one (one ragged call for the B pairs)."""
+    fundamental = estimate_fundamental(data[..., :2], data[..., 2:], valid=outliers, config=config, generator=generator)
+    inliers = fundamental.inlier_mask & outliers
+    enough = fundamental.success & (inliers.sum(-1) >= config.moving_objects.min_object_tracks)
+    return [mask if bool(found) else None for mask, found in zip(inliers, enough)]
 
 
 def image_centre(size: tuple[int, int]) -> Tensor:

@@ -5,8 +5,8 @@ fountain-P11 (a Herz-Jesu-P8 patch; start frames 0-6) and of Herz-Jesu-P8 (a fou
 start frames 0-3), moving on its own across the images (:data:`POSITIONS`; the thesis' §5.5
 experiment over five frames instead of three). ``torchsfm.reconstruct(..., moving_objects=
 "reconstruct")`` runs on the pasted frames and on the clean ones. Per case: the body found on the
-patch (views, points, the share of its points that lie on the patch), its shape against the
-patch — the patch's pixels (u, v, 0) are the truth up to a similarity: the RMS distance after a
+patch (views, points, the share of its points that lie on the patch), the shape of those points
+against the patch — the patch's pixels (u, v, 0) are the truth up to a similarity: the RMS distance after a
 similarity alignment, the RMS distance to the points' own plane, both in % of the patch's
 diagonal, and the anisotropy (the ratio of the singular values of the affine map from the
 points' plane to the patch, minus 1: 0 when the aspect ratio is right) — and the scene's camera
@@ -36,7 +36,8 @@ PATCH = (slice(100, 300), slice(260, 500))  # rows, columns of the source photo
 
 def body_on_patch(model: torchsfm.Reconstruction, boxes: torch.Tensor):
     """The moving body with most points on the patch, the share of its points there, and per point
-    its patch coordinates (u, v) (mean over the views it is seen in), or (None, 0, None)."""
+    its patch coordinates (u, v) (mean over the views it is seen in; NaN for a point seen off the
+    patch), or (None, 0, None)."""
     best = (None, 0.0, None)
     for body in model.objects:
         if body.model is None:
@@ -49,7 +50,7 @@ def body_on_patch(model: torchsfm.Reconstruction, boxes: torch.Tensor):
         share = float((on == seen).double().mean())
         if share > best[1]:
             uv = torch.zeros(part.num_points, 2, dtype=torch.float64).index_add_(0, part.observation_points, part.keypoints - box[:, :2])
-            best = (body, share, uv / seen[:, None])
+            best = (body, share, torch.where((on == seen)[:, None], uv / seen[:, None], torch.nan))
     return best
 
 
@@ -91,7 +92,8 @@ def run_case(sequence, patch: torch.Tensor, first: int) -> str:
     if body is None:
         bodies = ", ".join(f"{b.label}: {b.reason}" for b in with_patch.objects) or "no moving body found"
         return f"no body on the patch ({bodies}); {scene}"
-    similarity, planarity, anisotropy = patch_shape(body.model.points3d, uv)
+    on_patch = uv[:, 0].isfinite()
+    similarity, planarity, anisotropy = patch_shape(body.model.points3d[on_patch], uv[on_patch])
     return (f"body {body.model.num_views} views, {body.model.num_points} points ({100 * share:.0f} % on the patch), "
             f"shape {similarity:.2f} %, planarity {planarity:.2f} %, anisotropy {anisotropy:.2f} %; {scene}")
 

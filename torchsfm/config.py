@@ -515,7 +515,9 @@ class MovingObjectsConfig:
     ``track_refinements`` alternations; a track belongs to a group within the larger of the χ²
     bound at ``track_significance`` and ``track_tolerance`` px RMS; the static group is the one
     the votes reject least) or ``both``. ``enabled`` turns the rejection on in the two-view and
-    multi-view pipelines. With ``reconstruct_objects`` the multi-view pipeline segments the tracks
+    multi-view pipelines. With ``reconstruct_objects`` pair verification also keeps a second
+    motion's matches (a second F on the first one's outliers, at least ``min_object_tracks``),
+    which one F per pair would throw away, and the multi-view pipeline segments the tracks
     (``track_method`` ``segmentation`` whatever it is set to), reconstructs the static scene from
     label 0 and each moving body with at least ``min_object_tracks`` tracks seen in at least
     ``min_object_frames`` frames as its own model (:class:`~torchsfm.reconstruction.MovingObject`).

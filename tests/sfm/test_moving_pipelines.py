@@ -29,9 +29,11 @@ def _bundled_with_object():
 
 
 def _points_on_object(model, boxes) -> int:
+    """The model's points seen on the pasted patch in some view, more than 2 px inside its edge
+    (a corner on the edge itself is a junction of the patch and the background behind it)."""
     pixels = torch.full((model.num_views, model.num_points, 2), -1e9, dtype=torch.float64)
     pixels[model.observation_views, model.observation_points] = model.keypoints
-    return int(inside_boxes(pixels, boxes, margin=0.0).sum())
+    return int(inside_boxes(pixels, boxes, margin=-2.0).sum())
 
 
 def test_two_view_with_an_inserted_object_keeps_no_point_on_it():
@@ -109,23 +111,27 @@ def test_multi_view_with_an_inserted_object(shared_data):
     assert centre <= 1.5 * clean_centre + 0.0005
 
 
-def test_a_pasted_planar_object_becomes_its_own_model(shared_data):
-    """Fountain frames 2-6 with a Herz-Jesu patch moving on its own across five frames: pair
-    verification keeps the patch's matches as a second motion, the segmentation makes it a body,
-    and the body — planar: started from a homography — is reconstructed over all five frames.
-    Its points lie on the patch (>= 90 %) and match the patch's pixels up to a similarity within
-    1 % of its diagonal (0.44 % measured); the scene's cameras stay within 1.5x of the clean
-    frames' (+ 0.01 deg / 0.05 %)."""
+@pytest.mark.parametrize("first", [1, 2])
+def test_a_pasted_planar_object_becomes_its_own_model(shared_data, first):
+    """Fountain frames first..first+4 with a Herz-Jesu patch moving on its own across five
+    frames: pair verification keeps the patch's matches as a second motion, the segmentation
+    makes it a body, and the body — planar: started from a homography — is reconstructed over
+    all five frames. Its points lie on the patch (>= 90 %) and match the patch's pixels up to a
+    similarity within 1 % of its diagonal (0.54 and 0.44 % measured); the scene's cameras stay
+    within 1.5x of the clean frames' (+ 0.01 deg / 0.05 %). From frame 1 the segmentation first
+    settles on the patch and part of the background as the scene (24 deg camera errors) until
+    the scene is chosen again by its coverage after settling."""
     from torchsfm.evaluation import shape_errors
 
     fountain = read_strecha(shared_data / "strecha_fountain_P11")
     patch = read_image(read_strecha(shared_data / "strecha_herzjesu_P8").images[0])[:, 100:300, 260:500]
-    clean = [read_image(fountain.images[2 + j]) for j in range(5)]
+    clean = [read_image(fountain.images[first + j]) for j in range(5)]
     pasted, boxes = insert_moving_patch(clean, patch, ((150, 260), (190, 245), (230, 235), (265, 250), (300, 270)))
+    R_true, t_true = fountain.R[first:first + 5], fountain.t[first:first + 5]
 
     def run(images):
-        model = torchsfm.reconstruct(images, fountain.K[2], moving_objects="reconstruct", generator=torch.Generator().manual_seed(0))
-        errors = camera_errors(model.cameras.R, model.cameras.t, fountain.R[2:7][model.view_indices], fountain.t[2:7][model.view_indices])
+        model = torchsfm.reconstruct(images, fountain.K[first], moving_objects="reconstruct", generator=torch.Generator().manual_seed(0))
+        errors = camera_errors(model.cameras.R, model.cameras.t, R_true[model.view_indices], t_true[model.view_indices])
         return model, float(errors.rotation.max()), float(errors.centre.max()) / errors.extent
 
     _, clean_rotation, clean_centre = run(clean)

@@ -44,6 +44,9 @@ minimal-sample models:
    scene (``sizes`` and ``coverage`` are per label).
 6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
    it does not explain are cut out as bodies (:func:`settle_scene`, :func:`scene_excess`).
+   Where that leaves another motion both larger than the scene and covering more of the image,
+   that motion is made the scene and settled in turn (a scene first taken together with a large
+   object loses the background it did not explain; a scene that only lost coverage stays).
    Given the number of motions, the settled partition is kept when it has that many. With
    fewer, the motion whose cut in two gains most is cut until it has that many
    (:func:`split_least_rigid`: two bodies taken for one); that partition or the pieces cut into
@@ -179,9 +182,15 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         if count is not None:
             return labels
         settled = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
-        rechosen = scene_first(tracks, visible, settled)  # settling can leave another motion covering most of the image
-        if torch.equal(rechosen == 0, settled == 0):
+        found_count = int(settled.max()) + 1
+        coverage = grid_coverage(tracks, visible, settled, found_count)
+        sizes = torch.bincount(settled[settled >= 0], minlength=found_count)
+        dominant = (coverage > coverage[0]) & (sizes > sizes[0])
+        if not bool(dominant.any()):
             return settled
+        # settling left a motion both larger than the scene and covering more of the image: it is the scene
+        scene = int(torch.where(dominant, coverage, -1).argmax())
+        rechosen = torch.where(settled == scene, 0, torch.where(settled == 0, scene, settled))
         return settle_scene(tracks, visible, rechosen, piece_of, affinity, index, config, generator)
 
     labels = motions(None)  # given their number, a settled partition of that many motions is kept

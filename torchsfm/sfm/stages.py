@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchsfm.camera import undistort_points
 from torchsfm.config import Config
@@ -32,7 +32,7 @@ from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.pairs import bridge_pairs, coarse_features
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
-from torchsfm.sfm.tracks import Tracks, build_tracks
+from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
 from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
                                      reject_moving_tracks, self_calibrate, verify_pairs)
 
@@ -125,12 +125,15 @@ class DetectCorners(ConfiguredStage):
 
 class MatchPairs(ConfiguredStage):
     """Coarse matching of every view pair, pair selection and guided NCC + strength-measure
-    matches of the chosen pairs: fills ``putative`` and ``homographies``."""
+    matches of the chosen pairs (with moving bodies to reconstruct, in the plain disc too): fills
+    ``putative`` and ``homographies``."""
 
-    SECTIONS = ("pairs", "matching", "reconstruction")
+    SECTIONS = ("pairs", "matching", "reconstruction", "moving_objects")
 
     def forward(self, state: ViewSet) -> ViewSet:
-        state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report)
+        objects = self.config.moving_objects
+        state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report,
+                                                              other_motions=objects.enabled and objects.reconstruct_objects)
         return state
 
 
@@ -169,14 +172,24 @@ class SelfCalibrate(ConfiguredStage):
         return state
 
 
-class BuildTracks(nn.Module):
-    """Chain the verified matches (and the other motions' matches, where verification kept them) into tracks: fills ``tracks``."""
+class BuildTracks(ConfiguredStage):
+    """Chain the verified matches into tracks: fills ``tracks``. Where verification kept a second
+    motion's matches (:func:`~torchsfm.sfm.view_pairs.verify_pairs`), those that chain among
+    themselves over ``moving_objects.min_object_frames`` views join (the fewest a body is
+    reconstructed from; a pair's chance agreements among its outliers rarely chain)."""
+
+    SECTIONS = ("moving_objects",)
 
     def forward(self, state: ViewSet) -> ViewSet:
-        matches = {key: (m.index1, m.index2) if m.other_motion is None else
-                   (torch.cat([m.index1, m.other_motion[0]]), torch.cat([m.index2, m.other_motion[1]])) for key, m in state.pairs.items()}
-        state.tracks = build_tracks([c.shape[0] for c in state.corners], matches)
-        state.report(f"{state.tracks.num_tracks} tracks from {len(state.pairs)} verified pairs")
+        sizes = [c.shape[0] for c in state.corners]
+        matches = {key: (m.index1, m.index2) for key, m in state.pairs.items()}
+        others = chained_matches(sizes, {key: m.other_motion for key, m in state.pairs.items() if m.other_motion is not None},
+                                 self.config.moving_objects.min_object_frames)
+        for key, (a, b) in others.items():
+            matches[key] = (torch.cat([matches[key][0], a]), torch.cat([matches[key][1], b]))
+        state.tracks = build_tracks(sizes, matches)
+        state.report(f"{state.tracks.num_tracks} tracks from {len(state.pairs)} verified pairs"
+                     + (f" ({sum(a.numel() for a, _ in others.values())} matches of other motions)" if others else ""))
         return state
 
 
@@ -346,8 +359,9 @@ def default_pipeline(config: Config | None = None) -> Pipeline:
     sift = config.pairs.matcher == "sift"
     features = (DetectSiftFeatures, MatchSiftFeatures) if sift else (DetectCorners, MatchPairs)
     reject, mapper = RejectMovingObjects.from_config(config), MapIncrementally.from_config(config)
-    retry = Pipeline(BuildTracks(), reject, mapper)
+    tracks = BuildTracks.from_config(config)
+    retry = Pipeline(tracks, reject, mapper)
     rematch = (RematchUnregistered.from_config(config, retry=retry),) if config.pairs.epipolar_matching and not sift else ()
     bridge = (BridgeWithSift.from_config(config, retry=retry),) if config.pairs.sift_bridge and not sift else ()
     return Pipeline(*(stage.from_config(config) for stage in features), VerifyPairs.from_config(config),
-                    SelfCalibrate.from_config(config), BuildTracks(), reject, mapper, *rematch, *bridge)
+                    SelfCalibrate.from_config(config), tracks, reject, mapper, *rematch, *bridge)

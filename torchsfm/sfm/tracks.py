@@ -125,3 +125,21 @@ def build_tracks(num_corners: list[int], matches: dict[tuple[int, int], tuple[Te
     global_ids = torch.nonzero(keep).flatten()[order]
     view = views_of[global_ids]
     return Tracks(view=view, corner=global_ids - offsets[view], track=track[order], num_tracks=components.numel())
+
+
+def chained_matches(num_corners: list[int], matches: dict[tuple[int, int], tuple[Tensor, Tensor]], min_views: int
+                    ) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
+    """Of pairwise ``matches`` (as :func:`build_tracks` takes them), those that chain among
+    themselves into tracks seen in at least ``min_views`` views, per pair (pairs left empty are
+    left out). A pair's chance agreements rarely continue into a third view; a moving body's
+    matches do."""
+    tracks = build_tracks(num_corners, matches)
+    offsets = torch.cumsum(torch.tensor([0] + num_corners), 0)
+    chained = torch.zeros(int(offsets[-1]), dtype=torch.bool)
+    chained[offsets[tracks.view] + tracks.corner] = (torch.bincount(tracks.track, minlength=tracks.num_tracks) >= min_views)[tracks.track]
+    kept = {}
+    for (i, j), (a, b) in matches.items():
+        both = chained[offsets[i] + a] & chained[offsets[j] + b]
+        if bool(both.any()):
+            kept[(i, j)] = (a[both], b[both])
+    return kept

@@ -61,34 +61,37 @@ def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
     return [corners[v] for v in range(len(greys))]
 
 
-def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress
-                      ) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
+def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress,
+                     other_motions: bool = False) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
     """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
     (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
     on the coarse homography's prediction where it moves corners by more than a quarter of the
     disc; pairs with fewer than ``min_pair_inliers`` matches are dropped. Only the matched corner
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs). Also returns each matched pair's coarse homography (None
-    where none holds or ``pairs.guided`` is off)."""
+    where none holds or ``pairs.guided`` is off). ``other_motions``: see :func:`guided_matches`."""
     homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided)
-    return guided_matches(greys, raw, homographies, config, report), homographies
+    return guided_matches(greys, raw, homographies, config, report, other_motions), homographies
 
 
 def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tuple[int, int], Tensor | None], config: Config,
-                   report: Progress) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
+                   report: Progress, other_motions: bool = False) -> dict[tuple[int, int], tuple[Tensor, Tensor]]:
     """NCC + strength-measure matches (index1, index2) of every view pair (i, j) of
     ``homographies``, the search disc centred on the pair's homography's prediction where it
     moves corners by more than a quarter of the disc, and the patches warped by its local affine
     map (``pairs.warp_patches``); a None homography: the plain disc. The patches of the view that
-    sees the scene larger are the ones warped (:func:`second_sees_larger`).
+    sees the scene larger are the ones warped (:func:`second_sees_larger`). With
+    ``other_motions`` (moving bodies to be reconstructed), a pair matched at the prediction is
+    matched in the plain disc too, and the corners that left unmatched there join: an object
+    moving on its own is not where the scene's homography puts it.
     Pairs with fewer than ``min_pair_inliers`` matches are left out."""
     putative = {}
     for (i, j), H in homographies.items():
         report(f"matching views {i} and {j}")
         if H is not None and config.pairs.warp_patches and second_sees_larger(H, raw[i]):
-            index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config)
+            index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config, other_motions)
         else:
-            index1, index2 = _match_along(greys, raw, i, j, H, config)
+            index1, index2 = _match_along(greys, raw, i, j, H, config, other_motions)
         if index1.numel() >= config.reconstruction.min_pair_inliers:
             putative[(i, j)] = (index1, index2)
     return putative
@@ -102,7 +105,8 @@ def second_sees_larger(H: Tensor, points: Tensor) -> bool:
     return float(torch.linalg.det(homography_jacobian(H, points.double())).median()) > 1
 
 
-def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config) -> tuple[Tensor, Tensor]:
+def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config,
+                 other_motions: bool) -> tuple[Tensor, Tensor]:
     """Matched corner indices of views i and j, guided by the homography H (3, 3) from i to j
     (or None) as :func:`guided_matches` says."""
     predicted = warp = None
@@ -112,8 +116,14 @@ def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tens
             predicted = moved
         if config.pairs.warp_patches:
             warp = patch_warps(H, raw[i].double())
-    matches = match_corners(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], config.matching, predicted, warp)
-    return matches.index1, matches.index2
+    image1, image2 = to_unit_float(greys[i]), to_unit_float(greys[j])
+    matches = match_corners(image1, image2, raw[i], raw[j], config.matching, predicted, warp)
+    index1, index2 = matches.index1, matches.index2
+    if other_motions and predicted is not None:
+        plain = match_corners(image1, image2, raw[i], raw[j], config.matching)
+        free = ~torch.isin(plain.index1, index1) & ~torch.isin(plain.index2, index2)
+        index1, index2 = torch.cat([index1, plain.index1[free]]), torch.cat([index2, plain.index2[free]])
+    return index1, index2
 
 
 def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],

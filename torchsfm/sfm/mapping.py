@@ -22,7 +22,7 @@ from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.ragged import pad_rows
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
-from torchsfm.estimators.planar_pose import choose_by_normal, planar_poses
+from torchsfm.estimators.planar_pose import PlanarPose, choose_by_normal, planar_poses
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 from torchsfm.numerics import floor_tiny
@@ -169,9 +169,20 @@ def planar_initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list
     planar = {key: match for key, match in pairs.items() if match.homography_ratio > settings.max_homography_ratio}
     rejected = []
 
-    def motions(view: int, other: int, match: PairMatches) -> list:
+    def motions(view: int, other: int, match: PairMatches) -> list[PlanarPose]:
         index_view, index_other = (match.index1, match.index2) if view < other else (match.index2, match.index1)
         return planar_poses(corners[view][index_view], corners[other][index_other], K[view], K[other], config=config, generator=generator)
+
+    def normals_seen_from(view: int, pair: tuple[int, int]) -> list[Tensor]:
+        """The plane normals (in ``view``'s frame) of ``view``'s planar pairs other than ``pair``."""
+        normals = []
+        for (a, b), match in planar.items():
+            if view in (a, b) and (a, b) != pair:
+                try:
+                    normals.append(torch.stack([pose.normal for pose in motions(view, a + b - view, match)]))
+                except TorchSfmError:
+                    continue
+        return normals
 
     for (i, j), match in sorted(planar.items(), key=lambda item: -item[1].index1.numel()):
         try:
@@ -179,14 +190,7 @@ def planar_initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list
         except TorchSfmError as error:
             rejected.append(f"{i}-{j}: {error}")
             continue
-        others = []
-        for (a, b), other in planar.items() if len(poses) > 1 else ():
-            if i in (a, b) and (a, b) != (i, j):
-                try:
-                    others.append(torch.stack([pose.normal for pose in motions(i, a + b - i, other)]))
-                except TorchSfmError:
-                    continue
-        pose = choose_by_normal(poses, others)
+        pose = choose_by_normal(poses, normals_seen_from(i, (i, j)) if len(poses) > 1 else [])
         angle = float(triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), -pose.R.T @ pose.t).median())
         if angle < settings.min_initial_angle:
             rejected.append(f"{i}-{j}: median triangulation angle {angle:.2f} deg (from its homography)")

@@ -1,7 +1,7 @@
 import torch
 from torch.testing import assert_close
 
-from torchsfm.sfm.tracks import Tracks, build_tracks
+from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
 
 
 def test_matches_chain_into_tracks_and_conflicts_are_dropped():
@@ -20,6 +20,22 @@ def test_matches_chain_into_tracks_and_conflicts_are_dropped():
     assert (table[[2, 3, 4]] == -1).all()  # corner 2 unmatched, corners 3 and 4 in the inconsistent component
     long_track = table[0]
     assert tracks.lookup(1, 4)[2] == long_track and tracks.lookup(2, 4)[1] == long_track
+
+
+def test_only_matches_that_chain_over_three_views_are_kept():
+    """Corner 0 of view 0 - corner 1 of view 1 - corner 2 of view 2 chains over three views and
+    is kept in both its pairs; the two-view match (view 0 corner 3 - view 1 corner 0) and the
+    lone match of pair (1, 2) are dropped, and a pair left empty is left out."""
+    matches = {
+        (0, 1): (torch.tensor([0, 3]), torch.tensor([1, 0])),
+        (1, 2): (torch.tensor([1, 3]), torch.tensor([2, 0])),
+        (0, 3): (torch.tensor([1]), torch.tensor([1])),
+    }
+    kept = chained_matches([4, 4, 4, 4], matches, min_views=3)
+    assert sorted(kept) == [(0, 1), (1, 2)]
+    assert kept[(0, 1)][0].tolist() == [0] and kept[(0, 1)][1].tolist() == [1]
+    assert kept[(1, 2)][0].tolist() == [1] and kept[(1, 2)][1].tolist() == [2]
+    assert chained_matches([4, 4, 4, 4], matches, min_views=2)[(0, 3)][0].tolist() == [1]
 
 
 def test_no_matches_no_tracks():

@@ -169,9 +169,23 @@ def planar_initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list
     planar = {key: match for key, match in pairs.items() if match.homography_ratio > settings.max_homography_ratio}
     rejected = []
 
+    decomposed: dict[tuple[int, int], list[PlanarPose] | TorchSfmError] = {}  # each ordered pair decomposed once
+
     def motions(view: int, other: int, match: PairMatches) -> list[PlanarPose]:
-        index_view, index_other = (match.index1, match.index2) if view < other else (match.index2, match.index1)
-        return planar_poses(corners[view][index_view], corners[other][index_other], K[view], K[other], config=config, generator=generator)
+        if (view, other) not in decomposed:
+            index_view, index_other = (match.index1, match.index2) if view < other else (match.index2, match.index1)
+            try:
+                decomposed[(view, other)] = planar_poses(corners[view][index_view], corners[other][index_other], K[view], K[other],
+                                                         config=config, generator=generator)
+            except TorchSfmError as error:
+                decomposed[(view, other)] = error
+        found = decomposed[(view, other)]
+        if isinstance(found, TorchSfmError):
+            raise found
+        return found
+
+    def median_angle(pose: PlanarPose) -> float:
+        return float(triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), -pose.R.T @ pose.t).median())
 
     def normals_seen_from(view: int, pair: tuple[int, int]) -> list[Tensor]:
         """The plane normals (in ``view``'s frame) of ``view``'s planar pairs other than ``pair``."""
@@ -190,8 +204,9 @@ def planar_initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list
         except TorchSfmError as error:
             rejected.append(f"{i}-{j}: {error}")
             continue
-        pose = choose_by_normal(poses, normals_seen_from(i, (i, j)) if len(poses) > 1 else [])
-        angle = float(triangulation_angle(pose.points3d, torch.zeros(3, dtype=torch.float64), -pose.R.T @ pose.t).median())
+        can_pass = max(median_angle(pose) for pose in poses) >= settings.min_initial_angle  # else no twin test: a camera only turning
+        pose = choose_by_normal(poses, normals_seen_from(i, (i, j))) if len(poses) > 1 and can_pass else poses[0]
+        angle = median_angle(pose)
         if angle < settings.min_initial_angle:
             rejected.append(f"{i}-{j}: median triangulation angle {angle:.2f} deg (from its homography)")
             continue

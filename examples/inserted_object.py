@@ -27,7 +27,7 @@ from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors, shape_errors
 from torchsfm.images import read_image
 from torchsfm.io.datasets import read_strecha
-from torchsfm.testing import insert_moving_patch
+from torchsfm.testing import insert_moving_patch, patch_coordinates
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 POSITIONS = ((150, 260), (190, 245), (230, 235), (265, 250), (300, 270))  # the patch's top-left corner per frame (x, y)
@@ -35,22 +35,17 @@ PATCH = (slice(100, 300), slice(260, 500))  # rows, columns of the source photo
 
 
 def body_on_patch(model: torchsfm.Reconstruction, boxes: torch.Tensor):
-    """The moving body with most points on the patch, the share of its points there, and per point
-    its patch coordinates (u, v) (mean over the views it is seen in; NaN for a point seen off the
-    patch), or (None, 0, None)."""
+    """The moving body with the largest share of its points on the patch, that share, and its
+    points' patch coordinates (:func:`~torchsfm.testing.patch_coordinates`; NaN off the patch),
+    or (None, 0, None)."""
     best = (None, 0.0, None)
     for body in model.objects:
         if body.model is None:
             continue
-        part = body.model
-        box = boxes[torch.tensor(part.view_indices)[part.observation_views]]  # (O, 4)
-        inside = ((part.keypoints >= box[:, :2]) & (part.keypoints <= box[:, 2:])).all(-1)
-        on = torch.zeros(part.num_points, dtype=torch.float64).index_add_(0, part.observation_points, inside.double())
-        seen = torch.bincount(part.observation_points, minlength=part.num_points).double()
-        share = float((on == seen).double().mean())
+        on_patch, uv = patch_coordinates(body.model, boxes)
+        share = float(on_patch.double().mean())
         if share > best[1]:
-            uv = torch.zeros(part.num_points, 2, dtype=torch.float64).index_add_(0, part.observation_points, part.keypoints - box[:, :2])
-            best = (body, share, torch.where((on == seen)[:, None], uv / seen[:, None], torch.nan))
+            best = (body, share, uv)
     return best
 
 

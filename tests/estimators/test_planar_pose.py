@@ -1,8 +1,5 @@
 """Relative pose of two views of a plane from its homography: the twin motion and its rejection."""
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 from torch.testing import assert_close
@@ -10,16 +7,14 @@ from torch.testing import assert_close
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.estimators.planar_pose import choose_by_normal, planar_poses
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "sfm"))
-from test_from_tracks import _planar_tracks  # noqa: E402
+from torchsfm.testing import sliding_plane_scene
 
 
 def test_the_twin_motion_is_rejected_by_the_other_pairs_planes():
     """Frames 0-1 of a camera sliding along a plane, the points off the optical axis: both
     decompositions put every point in front, the false twin first. The plane of pairs 0-2 and 0-3
     picks the true motion: R = I, t along the slide, n = (0, 0, 1), to 1e-9 without noise."""
-    tracks, K, R, t = _planar_tracks(0.0)
+    tracks, K, R, t = sliding_plane_scene(0.0)
     generator = torch.Generator().manual_seed(0)
     poses = planar_poses(tracks[0], tracks[1], K, K, config=Config(), generator=generator)
     assert len(poses) == 2 and all(int(pose.inlier_mask.sum()) == 80 for pose in poses)
@@ -39,7 +34,7 @@ def test_a_camera_that_only_turns_does_not_start_a_model():
     from torchsfm.sfm.mapping import planar_initial_pair
     from torchsfm.sfm.view_pairs import PairMatches
 
-    tracks, K, _, _ = _planar_tracks(0.0)
+    tracks, K, _, _ = sliding_plane_scene(0.0)
     turned = torch.linalg.matrix_exp(torch.tensor([[0.0, 0.0, 0.1], [0.0, 0.0, 0.0], [-0.1, 0.0, 0.0]], dtype=torch.float64))
     mapped = torch.cat([tracks[0], torch.ones(80, 1, dtype=torch.float64)], -1) @ (K @ turned @ torch.linalg.inv(K)).T
     every = torch.arange(80)

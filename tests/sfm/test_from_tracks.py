@@ -18,7 +18,7 @@ from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.sfm.stages import ViewSet
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import verify_pairs
-from torchsfm.testing import rotation_error_deg, synthetic_moving_scene
+from torchsfm.testing import rotation_error_deg, sliding_plane_scene, synthetic_moving_scene
 
 
 def test_frame_pairs_have_near_and_far_partners():
@@ -182,29 +182,15 @@ def test_a_steadily_moving_body_gets_its_scale_and_path_in_the_scene():
     assert len(reconstruction_files(static, {})["points.ply"]) - len(scene_only) - 15 * body_points in range(0, 8)
 
 
-def _planar_tracks(noise: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """80 points on a 1.5 m square of the plane Z = 5 m, off the optical axis, seen by 5 cameras
-    that slide along the plane without turning (the homography of frames 0-1 has a twin motion
-    that puts every point in front of both cameras): tracks (5, 80, 2) with ``noise`` px, K, R, t."""
-    generator = torch.Generator().manual_seed(0)
-    X = torch.cat([1.5 * torch.rand(80, 2, generator=generator, dtype=torch.float64) - 2.2,
-                   torch.full((80, 1), 5.0, dtype=torch.float64)], dim=-1)
-    K = torch.tensor([[700.0, 0, 320], [0, 700, 240], [0, 0, 1]], dtype=torch.float64)
-    C = torch.tensor([[0.4 * f * (1 if f % 2 else 0.7), -0.15 * f * (f % 3), 0.0] for f in range(5)], dtype=torch.float64)
-    R, t = torch.eye(3, dtype=torch.float64).expand(5, 3, 3), -C
-    projected = (X[None] + t[:, None]) @ K.T
-    tracks = projected[..., :2] / projected[..., 2:] + noise * torch.randn(5, 80, 2, generator=generator, dtype=torch.float64)
-    return tracks, K, R, t
-
-
 def test_a_planar_scene_starts_from_its_homography():
-    """Every pair of a planar scene is refused as an F start (a homography explains it). The
+    """Every pair of a planar scene (:func:`~torchsfm.testing.sliding_plane_scene`) is refused as
+    an F start (a homography explains it). The
     mapper starts from the homography's motion, of the twin motions the one whose plane frames
     0-2 and 0-3 confirm: exact cameras without noise (1e-6 deg, 1e-6 of the path), and with 0.3 px
     noise every frame within 0.6 deg and 5 % of the path (a small plane in a narrow view trades
     rotation for translation: 0.42 deg and 3.1 % here)."""
     for noise, rotation, centre in ((0.0, 1e-6, 1e-6), (0.3, 0.6, 0.05)):
-        tracks, K, R, t = _planar_tracks(noise)
+        tracks, K, R, t = sliding_plane_scene(noise)
         model = reconstruct_tracks(tracks, K, generator=torch.Generator().manual_seed(0))
         assert model.view_indices == [0, 1, 2, 3, 4] and model.num_points == 80
         errors = camera_errors(model.cameras.R, model.cameras.t, R, t)

@@ -13,7 +13,7 @@ from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import read_strecha
 from torchsfm.images import read_image
 from torchsfm.sfm.two_view import TwoViewReconstruction
-from torchsfm.testing import insert_moving_patch, inside_boxes, rotation_error_deg, translation_direction_error_deg
+from torchsfm.testing import insert_moving_patch, inside_boxes, patch_coordinates, rotation_error_deg, translation_direction_error_deg
 from torchsfm.visualization import write_png
 
 MOVING = with_overrides(Config(), ["moving_objects.enabled=true"])
@@ -139,13 +139,9 @@ def test_a_pasted_planar_object_becomes_its_own_model(shared_data, first):
     assert model.num_views == 5 and rotation <= 1.5 * clean_rotation + 0.01 and centre <= 1.5 * clean_centre + 0.0005
     body = max((b for b in model.objects if b.model is not None), key=lambda b: b.model.num_points).model
     assert body.view_indices == [0, 1, 2, 3, 4]
-    box = boxes[torch.tensor(body.view_indices)[body.observation_views]]
-    inside = ((body.keypoints >= box[:, :2]) & (body.keypoints <= box[:, 2:])).all(-1).double()
-    seen = torch.bincount(body.observation_points, minlength=body.num_points).double()
-    on_patch = torch.zeros(body.num_points, dtype=torch.float64).index_add_(0, body.observation_points, inside) == seen
+    on_patch, uv = patch_coordinates(body, boxes)
     assert float(on_patch.double().mean()) >= 0.9
-    uv = torch.zeros(body.num_points, 2, dtype=torch.float64).index_add_(0, body.observation_points, body.keypoints - box[:, :2])
-    uv = (uv / seen[:, None])[on_patch]
+    uv = uv[on_patch]
     truth = torch.cat([uv, torch.zeros_like(uv[:, :1])], dim=-1)
     rms = float(shape_errors(body.points3d[on_patch].double(), truth).square().mean().sqrt())
     assert rms <= 0.01 * float((uv.amax(0) - uv.amin(0)).norm())

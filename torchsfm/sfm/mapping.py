@@ -539,6 +539,50 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     return primary
 
 
+def starting_pair(state, pairs: dict[tuple[int, int], PairMatches], config: Config, allowed: Tensor, timed
+                  ) -> tuple[tuple[int, int], Tensor, Tensor]:
+    """The initial pair (and camera j's pose R, t relative to camera i) of a model over the
+    ``allowed`` views, from the first of these that gives one: :func:`initial_pair` on the
+    matched ``pairs``; on the wider pairs linked through tracks (forward motion: the matched
+    pairs are too close together); on both at half ``min_initial_angle`` (COLMAP's fallback: the
+    angles scale with 1 / f, and a focal length the pairs cannot determine, e.g. driving
+    straight, may be the prior's twice over); :func:`planar_initial_pair` on both (a plane — a
+    wall, a flat moving object: every pair refused for its homography). ``timed(name, function)``
+    runs a step and adds its time to the mapper's timings.
+
+    Raises:
+        DegenerateConfigurationError: none of them gives a pair; the message has each one's reason.
+    """
+
+    def attempt(choose) -> tuple[tuple | None, DegenerateConfigurationError | None]:
+        try:
+            return timed("initial pair", choose)[:3], None
+        except DegenerateConfigurationError as error:
+            return None, error
+
+    start, error = attempt(lambda: initial_pair(pairs, state.corners, state.K, config, state.generator))
+    if start:
+        return start
+    wider = timed("initial pair", lambda: pairs_through_tracks(state, config, allowed, exclude=pairs))
+    state.report(f"no matched pair can start the model; trying {len(wider)} wider pairs linked through tracks")
+    start, wider_error = attempt(lambda: initial_pair(wider, state.corners, state.K, config, state.generator))
+    if start:
+        return start
+    halved = config.reconstruction.min_initial_angle / 2
+    relaxed = dataclasses.replace(config, reconstruction=dataclasses.replace(config.reconstruction, min_initial_angle=halved))
+    start, _ = attempt(lambda: initial_pair({**pairs, **wider}, state.corners, state.K, relaxed, state.generator))
+    if start:
+        state.report(f"no pair reaches {config.reconstruction.min_initial_angle:g} deg of triangulation angle: "
+                     f"started from {start[0][0]}-{start[0][1]} at half of it")
+        return start
+    start, planar_error = attempt(lambda: planar_initial_pair({**pairs, **wider}, state.corners, state.K, config, state.generator))
+    if start:
+        state.report(f"every pair is explained by a homography: started from {start[0][0]}-{start[0][1]}, posed from its homography")
+        return start
+    raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({wider_error}); "
+                                       f"nor any at half the angle, {halved:g} deg; {planar_error}")
+
+
 def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dict[int, str]]:
     """One model over the ``allowed`` (V,) views: the initial pair among them, then repeatedly the
     views that see most reconstructed tracks — every view that sees ``RESECTION_SHARE`` of the
@@ -557,32 +601,7 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         return value
 
     pairs = {(i, j): match for (i, j), match in state.pairs.items() if allowed[i] and allowed[j]}
-    try:
-        (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(pairs, state.corners, state.K, config, state.generator))
-    except DegenerateConfigurationError as error:  # e.g. forward motion: the matched pairs are too close together
-        wider = timed("initial pair", lambda: pairs_through_tracks(state, config, allowed, exclude=pairs))
-        state.report(f"no matched pair can start the model; trying {len(wider)} wider pairs linked through tracks")
-        try:
-            (first, second), R, t, _ = timed("initial pair", lambda: initial_pair(wider, state.corners, state.K, config, state.generator))
-        except DegenerateConfigurationError as second_error:
-            # COLMAP's fallback: half the angle (the angles scale with 1 / f, and a focal length
-            # the pairs cannot determine, e.g. driving straight, may be the prior's twice over)
-            halved = config.reconstruction.min_initial_angle / 2
-            relaxed = dataclasses.replace(config, reconstruction=dataclasses.replace(config.reconstruction, min_initial_angle=halved))
-            try:
-                (first, second), R, t, _ = timed("initial pair", lambda: initial_pair({**pairs, **wider}, state.corners, state.K, relaxed,
-                                                                                       state.generator))
-            except DegenerateConfigurationError:
-                try:  # a plane (a wall, a flat moving object): every pair refused for its homography
-                    (first, second), R, t, _ = timed("initial pair", lambda: planar_initial_pair({**pairs, **wider}, state.corners,
-                                                                                                 state.K, config, state.generator))
-                except DegenerateConfigurationError as planar_error:
-                    raise DegenerateConfigurationError(f"{error}; nor can the wider pairs linked through tracks ({second_error}); "
-                                                       f"nor any at half the angle, {halved:g} deg; {planar_error}") from None
-                state.report(f"every pair is explained by a homography: started from {first}-{second}, posed from its homography")
-            else:
-                state.report(f"no pair reaches {config.reconstruction.min_initial_angle:g} deg of triangulation angle: "
-                             f"started from {first}-{second} at half of it")
+    (first, second), R, t = starting_pair(state, pairs, config, allowed, timed)
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
     model.registered[[first, second]] = True

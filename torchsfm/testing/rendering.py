@@ -129,3 +129,17 @@ def inside_boxes(tracks: Tensor, boxes: Tensor, margin: float = 4.0) -> Tensor:
     point lies in its frame's box."""
     low, high = boxes[:, None, :2] - margin, boxes[:, None, 2:] + margin
     return ((tracks >= low) & (tracks <= high)).all(-1).any(0)
+
+
+def patch_coordinates(model, boxes: Tensor) -> tuple[Tensor, Tensor]:
+    """Where a model's points lie on a pasted patch: ``model`` a
+    :class:`~torchsfm.reconstruction.Reconstruction` whose ``view_indices`` index the (V, 4)
+    ``boxes`` (:func:`insert_moving_patch`). Returns (P,) bool, the point seen inside its view's
+    box in every view it is seen in, and (P, 2) float64 its mean position relative to the box's
+    top-left corner — its pixel in the patch — NaN where it is not on the patch."""
+    box = boxes[torch.tensor(model.view_indices)[model.observation_views]]  # (O, 4)
+    inside = ((model.keypoints >= box[:, :2]) & (model.keypoints <= box[:, 2:])).all(-1)
+    seen = torch.bincount(model.observation_points, minlength=model.num_points).double()
+    on_patch = torch.zeros(model.num_points, dtype=torch.float64).index_add_(0, model.observation_points, inside.double()) == seen
+    uv = torch.zeros(model.num_points, 2, dtype=torch.float64).index_add_(0, model.observation_points, model.keypoints.double() - box[:, :2])
+    return on_patch, torch.where(on_patch[:, None], uv / seen[:, None], torch.nan)

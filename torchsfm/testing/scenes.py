@@ -309,3 +309,19 @@ def visible_board_poses(count: int, seed: int, K: Tensor, distortion: Tensor, pa
     if keep.numel() < count:
         raise ValueError(f"only {keep.numel()} of {4 * count} poses show the whole board")
     return R[keep], t[keep]
+
+
+def sliding_plane_scene(noise: float, seed: int = 0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """80 points on a 1.5 m square of the plane Z = 5 m, off the optical axis, seen by 5 cameras
+    that slide along the plane without turning (K: f = 700 px, 640×480): the homography of
+    frames 0-1 has a twin motion that puts every point in front of both cameras. Returns tracks
+    (5, 80, 2) with ``noise`` px of Gaussian noise, K (3, 3), R (5, 3, 3), t (5, 3); float64."""
+    generator = torch.Generator().manual_seed(seed)
+    X = torch.cat([1.5 * torch.rand(80, 2, generator=generator, dtype=torch.float64) - 2.2,
+                   torch.full((80, 1), 5.0, dtype=torch.float64)], dim=-1)
+    K = torch.tensor([[700.0, 0, 320], [0, 700, 240], [0, 0, 1]], dtype=torch.float64)
+    C = torch.tensor([[0.4 * f * (1 if f % 2 else 0.7), -0.15 * f * (f % 3), 0.0] for f in range(5)], dtype=torch.float64)
+    R, t = torch.eye(3, dtype=torch.float64).expand(5, 3, 3), -C
+    projected = (X[None] + t[:, None]) @ K.T
+    tracks = projected[..., :2] / projected[..., 2:] + noise * torch.randn(5, 80, 2, generator=generator, dtype=torch.float64)
+    return tracks, K, R, t

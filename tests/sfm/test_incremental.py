@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import torchsfm
-from torchsfm.errors import NotEnoughDataError
+from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError
 from torchsfm.evaluation import camera_errors
 from torchsfm.config import Config, with_overrides
 from torchsfm.camera import decompose_projection
@@ -73,6 +73,14 @@ def test_a_degenerate_first_pair_is_passed_over(shared_data):
     initial = next(message for message in messages if message.startswith("initial pair"))
     assert not initial.startswith("initial pair 0-1")
     assert len(model.view_indices) >= 3
+
+
+def test_two_copies_of_one_image_are_refused_as_no_camera_motion(shared_data):
+    """Nothing moved between the two images: the error says so rather than only that a
+    homography explains the pair."""
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    with pytest.raises(DegenerateConfigurationError, match=r"0-1: .*median image motion 0\.0 px: the camera did not move"):
+        torchsfm.reconstruct([sequence.images[0], sequence.images[0]], sequence.K[0])
 
 
 def test_shuffled_wide_baseline_and_no_K(shared_data):

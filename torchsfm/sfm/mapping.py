@@ -37,6 +37,7 @@ PAIR_POSE_SCALE_TOLERANCE = 0.1  # a point fixes a translation's length if 10 % 
 PARALLAX_BATCH = 64  # pairs per batched parallax screen of the initial-pair candidates
 WIDER_PAIR_CANDIDATES = 12  # pairs linked only through tracks that may start a model when no matched pair can
 RESECTION_SHARE = 0.75  # the views that see this share of the best view's points are resected together (OpenMVG's rule)
+STILL = 0.5  # px: matched corners that move less than this (median) show a camera that did not move (sub-pixel corner noise)
 
 
 def triangulation_angle(X: Tensor, centre1: Tensor, centre2: Tensor) -> Tensor:
@@ -137,7 +138,9 @@ def initial_pair(pairs: dict[tuple[int, int], PairMatches], corners: list[Tensor
     screened = dict(zip(candidates, parallax_angles(list(candidates.values()), list(candidates), corners, K).tolist()))
     for (i, j), match in ordered:
         if match.homography_ratio > settings.max_homography_ratio:
-            rejected.append(f"{i}-{j}: a homography explains {match.homography_ratio:.0%} of its inliers")
+            motion = float((corners[j][match.index2] - corners[i][match.index1]).norm(dim=-1).median())
+            rejected.append(f"{i}-{j}: a homography explains {match.homography_ratio:.0%} of its inliers "
+                            f"(median image motion {motion:.1f} px{': the camera did not move' if motion < STILL else ''})")
             continue
         if screened[(i, j)] < settings.min_initial_angle:
             rejected.append(f"{i}-{j}: median triangulation angle {screened[(i, j)]:.2f} deg (from its verified F)")

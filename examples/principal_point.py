@@ -19,7 +19,6 @@ these sets: cy is determined to about a pixel, a pixel of cy tilts every camera 
 from __future__ import annotations
 
 import argparse
-import copy
 from pathlib import Path
 
 import torch
@@ -53,7 +52,7 @@ def profile(name: str, folder: Path, step: float, steps: int) -> None:
     rows = []
     for k in range(-steps, steps + 1):
         cy = truth + k * step
-        adjusted = bundle_adjust(problem_of(copy.copy(model), cy), config=config).problem
+        adjusted = bundle_adjust(problem_of(model, cy), config=config).problem
         errors = camera_errors(adjusted.rotations, adjusted.translations, sequence.R[model.view_indices], sequence.t[model.view_indices])
         rows.append((cy, adjusted.cost(), float(adjusted.intrinsics[0, 0, 0]), float(adjusted.intrinsics[0, 0, 2]),
                      float(errors.rotation.median()), 100 * float(errors.centre.median()) / errors.extent))

@@ -43,7 +43,8 @@ minimal-sample models:
    rigidity votes reject least); callers holding better evidence choose another label as the
    scene (``sizes`` and ``coverage`` are per label).
 6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
-   it does not explain are cut out as bodies (:func:`settle_scene`, :func:`scene_excess`).
+   it does not explain are cut out as bodies, the scene refitted without them until it cuts
+   nothing more (:func:`settle_scene`, :func:`scene_excess`).
    Where that leaves another motion both larger than the scene and covering more of the image,
    that motion is made the scene and settled in turn (a scene first taken together with a large
    object loses the background it did not explain; a scene that only lost coverage stays).
@@ -282,11 +283,13 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     split a scene of several planes. Every track's residual under the scene's rigid motion is
     weighed against its noise bound (:func:`scene_excess`): a motion with at most half its
     tracks beyond it joins the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`)
-    with more than half its tracks beyond it is cut. The cut pieces are merged into bodies by
-    :func:`merge_clusters` over their own links and labelled after the other motions — those a
-    rigid motion of their own explains to within the tracker's noise (:func:`noise_explained`;
-    measured on KT3DMoSeg, a 1 px bound on the median labelled whole groups of cars driving
-    together outliers); the others are outliers (-1).
+    with more than half its tracks beyond it is cut. The scene without the cut pieces judges the
+    motions and its pieces again, until it cuts nothing more: a fit over a scene that still holds
+    a body's pieces is pulled towards them and explains some. The cut pieces are merged into
+    bodies by :func:`merge_clusters` over their own links and labelled after the other motions —
+    those a rigid motion of their own explains, over the frames their tracks span, to within the
+    tracker's noise (:func:`noise_explained`; measured on KT3DMoSeg, a 1 px bound on the median
+    labelled whole groups of cars driving together outliers); the others are outliers (-1).
     Nothing is cut when fewer than 12 scene tracks would remain. When pieces were cut, the scene
     as it now stands judges every motion once more (:func:`join_explained`).
 
@@ -299,25 +302,30 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     Returns:
         (N,) int64 labels, the motions renumbered 0..k' in their order.
     """
-    scene = labels == 0
     pairs = frame_pairs(visible)
-    excess = scene_excess(tracks, visible, scene, pairs, config, generator)
-    labels = join_explained(labels, excess)
-    scene = labels == 0
-    scene_pieces = pieces[scene].unique()
-    inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
-    cut = scene & torch.isin(pieces, scene_pieces[inconsistent])
-    if not bool(cut.any()) or int((scene & ~cut).sum()) < MIN_VECTORS:
+    cut = torch.zeros_like(labels, dtype=torch.bool)  # labelled 0 until made bodies, but out of the scene's fit
+    while True:  # each pass cuts a piece or ends
+        scene = (labels == 0) & ~cut
+        excess = scene_excess(tracks, visible, scene, pairs, config, generator)
+        labels = torch.where(cut, 0, join_explained(torch.where(cut, -1, labels), excess))
+        scene = (labels == 0) & ~cut
+        scene_pieces = pieces[scene].unique()
+        inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
+        more = scene & torch.isin(pieces, scene_pieces[inconsistent])
+        if not bool(more.any()) or int((scene & ~more).sum()) < MIN_VECTORS:
+            break
+        cut |= more
+    if not bool(cut.any()):
         return labels
     position = torch.nonzero(cut[clustered])[:, 0]
     _, piece_index = pieces[clustered[position]].unique(return_inverse=True)
     bodies = merge_clusters(affinity[position][:, position], piece_index, None, config)
     members = torch.zeros(int(bodies.max()) + 1, labels.numel(), dtype=torch.bool, device=labels.device)
     members[bodies, clustered[position]] = True
-    rigid = noise_explained(tracks, visible, members, pairs, config)
+    rigid = noise_explained(tracks, visible, members, config)
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
-    # the scene that judged the cut pieces still held them: without them its fit may explain one after all
-    return join_explained(labels, scene_excess(tracks, visible, labels == 0, pairs, config, generator))
+    # the scene that judged the cut pieces held them: its last fit, without them, may explain one after all
+    return join_explained(labels, excess)
 
 
 def split_least_rigid(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
@@ -379,17 +387,22 @@ def partition_residual(tracks: Tensor, visible: Tensor, labels: Tensor) -> float
     return float(own[own.isfinite()].mean())
 
 
-def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, config: SegmentationConfig) -> Tensor:
+def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, config: SegmentationConfig) -> Tensor:
     """(C,) bool: which of C (C, N) track sets one rigid motion of their own explains — the
     median over a set's tracks of their RMS Sampson distance to one F per frame pair
-    (:func:`track_residuals`) over the bound that noise at the tracker's floor
+    (:func:`track_residuals`; the pairs :func:`frame_pairs` of the set's own tracks: a body seen
+    in a few frames of a video has no tracks at both ends of the sequence's pairs) over the bound that noise at the tracker's floor
     (``config.scene_tolerance`` px) stays within at ``config.scene_significance`` for as many
     pairs as the track is seen in (sqrt(χ²(d) / d) times the floor: 3.3× for one pair, 1.6× for
     14). False where the set is too small to fit."""
-    rms, judged = track_residuals(tracks, visible, members, pairs)
-    seen = pairs_seen(visible, pairs)
-    noise = _bound(torch.tensor(config.scene_tolerance, dtype=tracks.dtype), seen, seen, config)
-    return torch.where(judged & members, rms / noise, torch.nan).nanmedian(-1).values <= 1
+    verdicts = []
+    for member in members:  # each set on the frame pairs its own tracks span (a short-lived body's tracks never span the sequence's)
+        pairs = frame_pairs(visible[:, member])
+        rms, judged = track_residuals(tracks, visible, member[None], pairs)
+        seen = pairs_seen(visible, pairs)
+        noise = _bound(torch.tensor(config.scene_tolerance, dtype=tracks.dtype), seen, seen, config)
+        verdicts.append(torch.where(judged & member, rms / noise, torch.nan).nanmedian(-1).values <= 1)
+    return torch.cat(verdicts)
 
 
 def join_explained(labels: Tensor, excess: Tensor) -> Tensor:

@@ -246,9 +246,8 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     chained over all its frames drifts) the residual is the RMS Sampson distance to one F per
     frame pair (:func:`track_residuals`; d = n = the pairs a track is seen in).
     """
-    plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
-    if tied and float(plane[0][judged[0] & scene].median()) > config.scene_tolerance:
+    if tied and has_parallax(tracks, visible, scene, pairs, config):
         group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
                             resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
                             refinements=config.scene_refinements, threshold=config.scene_tolerance,
@@ -261,6 +260,15 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     rms = torch.where(judged[0], rms[0], torch.nan)
     seen = pairs_seen(visible, pairs)
     return rms / _bound(rms[scene].nanmedian(), seen, seen, config)
+
+
+def has_parallax(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, config: SegmentationConfig) -> bool:
+    """Whether the (N,) bool ``members`` tracks have parallax: their median distance to one
+    homography per frame pair (:func:`track_residuals`) beyond the noise floor
+    ``config.scene_tolerance``. Without it (a camera that only turns, a plane, a distant scene)
+    their rigid motion is one homography per pair, and fixes no depth."""
+    plane, judged = track_residuals(tracks, visible, members[None], pairs, "homography")
+    return float(plane[0][judged[0] & members].median()) > config.scene_tolerance
 
 
 def pairs_seen(visible: Tensor, pairs: Tensor) -> Tensor:
@@ -282,7 +290,8 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     nearly agrees over the sampled frames (a car driving along the camera's direction), and may
     split a scene of several planes. Every track's residual under the scene's rigid motion is
     weighed against its noise bound (:func:`scene_excess`): a motion with at most half its
-    tracks beyond it joins the scene; a piece of the scene (:attr:`MotionSegmentation.pieces`)
+    tracks beyond it joins the scene, and so does, before anything is cut, a motion whose own
+    rigid motion explains the scene (:func:`join_explaining`); a piece of the scene (:attr:`MotionSegmentation.pieces`)
     with more than half its tracks beyond it is cut. The scene without the cut pieces judges the
     motions and its pieces again, until it cuts nothing more: a fit over a scene that still holds
     a body's pieces is pulled towards them and explains some. The cut pieces are merged into
@@ -308,6 +317,11 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         scene = (labels == 0) & ~cut
         excess = scene_excess(tracks, visible, scene, pairs, config, generator)
         labels = torch.where(cut, 0, join_explained(torch.where(cut, -1, labels), excess))
+        if not bool(cut.any()):  # before any cut: a motion whose own fit explains the scene joins it, and the scene is fitted anew
+            joined = join_explaining(tracks, visible, labels, pairs, config, generator)
+            if int(joined.max()) < int(labels.max()):
+                labels = joined
+                continue
         scene = (labels == 0) & ~cut
         scene_pieces = pieces[scene].unique()
         inconsistent = torch.stack([excess[scene & (pieces == p)].nanmedian() > 1 for p in scene_pieces])
@@ -408,9 +422,36 @@ def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, config: Se
 def join_explained(labels: Tensor, excess: Tensor) -> Tensor:
     """(N,) labels with every motion that the scene's rigid motion explains (median (N,)
     :func:`scene_excess` at most 1) joined to the scene (label 0), renumbered."""
-    joined = torch.tensor([motion for motion in range(1, int(labels.max()) + 1) if bool(excess[labels == motion].nanmedian() <= 1)],
-                          dtype=labels.dtype, device=labels.device)
-    labels = torch.where(torch.isin(labels, joined), 0, labels)  # a new tensor: the caller's labels stay as they were
+    return joined_to_scene(labels, [motion for motion in range(1, int(labels.max()) + 1)
+                                    if bool(excess[labels == motion].nanmedian() <= 1)])
+
+
+def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,
+                    generator: torch.Generator) -> Tensor:
+    """(N,) labels with every motion whose own rigid motion explains the scene (the median over
+    the scene's tracks of their :func:`scene_excess` under the motion's fit at most 1) joined to
+    the scene, renumbered: the converse of :func:`join_explained`. A scene fit pulled by the body
+    tracks it still holds can fail to explain the rest of the background, which the clustering
+    split off as a motion of its own, while that clean half's fit explains the scene.
+    Only for a scene with parallax (:func:`has_parallax`): a camera that only turns, a plane or a
+    distant scene is explained by any motion that shares the camera's rotation (as points at
+    infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted."""
+    scene = labels == 0
+    if not has_parallax(tracks, visible, scene, pairs, config):
+        return labels
+    explaining = []
+    for motion in range(1, int(labels.max()) + 1):
+        own = labels == motion
+        if int(own.sum()) >= MIN_VECTORS and bool(scene_excess(tracks, visible, own, pairs, config, generator)[scene].nanmedian() <= 1):
+            explaining.append(motion)
+    return joined_to_scene(labels, explaining)
+
+
+def joined_to_scene(labels: Tensor, motions: list[int]) -> Tensor:
+    """(N,) labels with the listed motions relabelled 0 (the scene) and the rest renumbered
+    0..k' in their order (-1 kept); a new tensor."""
+    joined = torch.tensor(motions, dtype=labels.dtype, device=labels.device)
+    labels = torch.where(torch.isin(labels, joined), 0, labels)
     _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
     return labels
 

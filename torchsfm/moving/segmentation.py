@@ -244,10 +244,14 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     where along its epipolar line a point must be. Otherwise (a plane or a distant scene: the
     reconstruction is degenerate; a video of short tracks: one projective reconstruction
     chained over all its frames drifts) the residual is the RMS Sampson distance to one F per
-    frame pair (:func:`track_residuals`; d = n = the pairs a track is seen in).
+    frame pair (:func:`track_residuals`; d = n = the pairs a track is seen in). A scene without
+    parallax moves by one homography per frame pair, and the F fitted to it is degenerate (any F
+    compatible with the homography fits, and extrapolates anywhere): there a track's excess is the
+    lesser of that and its RMS transfer distance to those homographies over its bound (d = 2n).
     """
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
-    if tied and has_parallax(tracks, visible, scene, pairs, config):
+    parallax = has_parallax(tracks, visible, scene, pairs, config)
+    if tied and parallax:
         group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
                             resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
                             refinements=config.scene_refinements, threshold=config.scene_tolerance,
@@ -259,7 +263,13 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     rms, judged = track_residuals(tracks, visible, scene[None], pairs)
     rms = torch.where(judged[0], rms[0], torch.nan)
     seen = pairs_seen(visible, pairs)
-    return rms / _bound(rms[scene].nanmedian(), seen, seen, config)
+    excess = rms / _bound(rms[scene].nanmedian(), seen, seen, config)
+    if parallax:
+        return excess
+    # no parallax: the scene's homographies are its motion, and its F fits are degenerate
+    plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
+    plane = torch.where(judged[0], plane[0], torch.nan)
+    return torch.fmin(excess, plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config))
 
 
 def has_parallax(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, config: SegmentationConfig) -> bool:

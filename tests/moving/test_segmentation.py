@@ -446,7 +446,7 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     plane is degenerate and extrapolates 1.27 px (median) off the right half, beyond its 1 px
     bound; the wall's homographies explain that half (median excess measured 0.84) and not the
     moving box (19.4)."""
-    from torchsfm.moving.segmentation import frame_pairs, has_parallax, scene_excess, track_residuals
+    from torchsfm.moving.segmentation import frame_pairs, has_parallax, plane_residuals, scene_excess, track_residuals
 
     data = synthetic_moving_scene(4, num_frames=5, num_objects=1, object_points=60, noise=0.5, outlier_fraction=0.0,
                                   plane_share=1.0)
@@ -454,7 +454,7 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     background, x = data.labels == 0, data.tracks[0, :, 0]
     left = background & (x <= x[background].median())
     pairs = frame_pairs(visible)
-    assert not has_parallax(data.tracks, visible, left, pairs, SegmentationConfig())
+    assert not has_parallax(plane_residuals(data.tracks, visible, left, pairs), left, SegmentationConfig())
     sampson, _ = track_residuals(data.tracks, visible, left[None], pairs)
     assert float(sampson[0][background & ~left].median()) > SegmentationConfig().scene_tolerance
     excess = scene_excess(data.tracks, visible, left, pairs, SegmentationConfig(), torch.Generator().manual_seed(0))

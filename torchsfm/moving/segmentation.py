@@ -250,7 +250,8 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     lesser of that and its RMS transfer distance to those homographies over its bound (d = 2n).
     """
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
-    parallax = has_parallax(tracks, visible, scene, pairs, config)
+    plane = plane_residuals(tracks, visible, scene, pairs)
+    parallax = has_parallax(plane, scene, config)
     if tied and parallax:
         group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
                             resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
@@ -267,18 +268,22 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     if parallax:
         return excess
     # no parallax: the scene's homographies are its motion, and its F fits are degenerate
-    plane, judged = track_residuals(tracks, visible, scene[None], pairs, "homography")
-    plane = torch.where(judged[0], plane[0], torch.nan)
     return torch.fmin(excess, plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config))
 
 
-def has_parallax(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, config: SegmentationConfig) -> bool:
-    """Whether the (N,) bool ``members`` tracks have parallax: their median distance to one
-    homography per frame pair (:func:`track_residuals`) beyond the noise floor
-    ``config.scene_tolerance``. Without it (a camera that only turns, a plane, a distant scene)
-    their rigid motion is one homography per pair, and fixes no depth."""
+def plane_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+    """(N,) every track's RMS transfer distance (pixels) to the (N,) bool ``members`` tracks'
+    homographies, one per frame pair (:func:`track_residuals`); NaN where not judged."""
     plane, judged = track_residuals(tracks, visible, members[None], pairs, "homography")
-    return float(plane[0][judged[0] & members].median()) > config.scene_tolerance
+    return torch.where(judged[0], plane[0], torch.nan)
+
+
+def has_parallax(plane: Tensor, members: Tensor, config: SegmentationConfig) -> bool:
+    """Whether the (N,) bool ``members`` tracks have parallax: the median over them of their
+    (N,) :func:`plane_residuals` beyond the noise floor ``config.scene_tolerance``. Without it (a
+    camera that only turns, a plane, a distant scene) their rigid motion is one homography per
+    pair, and fixes no depth."""
+    return float(plane[members].nanmedian()) > config.scene_tolerance
 
 
 def pairs_seen(visible: Tensor, pairs: Tensor) -> Tensor:
@@ -447,7 +452,7 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     distant scene is explained by any motion that shares the camera's rotation (as points at
     infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted."""
     scene = labels == 0
-    if not has_parallax(tracks, visible, scene, pairs, config):
+    if not has_parallax(plane_residuals(tracks, visible, scene, pairs), scene, config):
         return labels
     explaining = []
     for motion in range(1, int(labels.max()) + 1):

@@ -151,33 +151,47 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     found = ransac(model, torch.cat([X.expand(F, N, 4), x], dim=-1), resection_ransac, valid=visible & group, generator=generator)
     camera_valid = found.success
     cameras = torch.where(camera_valid[:, None, None], found.model, cameras)
-    core = group
+    # the camera / point alternations involve the members only; every track is measured once at the end
+    index = torch.nonzero(members).flatten()
+    x_members, visible_members, core = x[:, index], visible[:, index], group[index]
+    M = index.numel()
     for step in range(refinements + 1):
-        observed = visible & camera_valid[:, None]
-        X = triangulate_multiview(cameras, x, observed.double())
-        projected = project(cameras, X.expand(F, N, 4))  # (F, N, 3)
-        squared = torch.where(observed, projection_distance_squared(projected, x), 0.0) / scale**2
-        frames_seen = observed.sum(0)
+        observed = visible_members & camera_valid[:, None]
+        X = triangulate_multiview(cameras, x_members, observed.double())
+        projected = project(cameras, X.expand(F, M, 4))  # (F, M, 3)
+        sse, frames_seen = _reprojection_sums(projected, x_members, observed, scale)
         tested = frames_seen >= 3
         dof = (2 * frames_seen - 3).clamp_min(1)
-        sse = squared.sum(0)
         reference = core & tested
         if int(reference.sum()) < ProjectiveResectionModel.sample_size:
             return "too few tracks of the group are seen in three frames"
         correction = (1 - 2 / (9 * dof[reference].double())) ** 3  # median of χ²_k / k
         sigma_sq = float((sse[reference] / dof[reference] / correction).median())
-        core = members & tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance))
+        core = tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance))
         if step == refinements:
             break
         used = observed & core
-        depth = projected[..., 2].abs()  # (F, N): rows scaled by 1 / |p3ᵀX|
+        depth = projected[..., 2].abs()  # (F, M): rows scaled by 1 / |p3ᵀX|
         typical = floor_tiny(torch.where(used, depth, torch.nan).nanmedian(1).values[:, None])
         weights = torch.where(used, (typical / depth.maximum(DEPTH_FLOOR * typical)).square(), 0.0)
         enough = used.sum(1) >= ProjectiveResectionModel.sample_size
-        refit = model.fit_weighted(torch.cat([X.expand(F, N, 4), x], dim=-1), weights)
+        refit = model.fit_weighted(torch.cat([X.expand(F, M, 4), x_members], dim=-1), weights)
         camera_valid = camera_valid & enough
         cameras = torch.where(enough[:, None, None], refit, cameras)
+    observed = visible & camera_valid[:, None]
+    X = triangulate_multiview(cameras, x, observed.double())
+    sse, frames_seen = _reprojection_sums(project(cameras, X.expand(F, N, 4)), x, observed, scale)
+    tested = frames_seen >= 3
     rms = torch.where(tested, (sse / (2 * frames_seen).clamp_min(1)).sqrt(), torch.full_like(sse, float("inf")))
-    group = members & tested & (rms <= rms_bound(sigma_sq, dof, 2 * frames_seen, significance, threshold))
+    bound = rms_bound(sigma_sq, (2 * frames_seen - 3).clamp_min(1), 2 * frames_seen, significance, threshold)
+    group = members & tested & (rms <= bound)
     return RigidGroup(members=group, rms=rms, frames_seen=frames_seen, cameras=cameras, camera_valid=camera_valid,
                       reference=r, partner=partner)
+
+
+def _reprojection_sums(projected: Tensor, x: Tensor, observed: Tensor, scale: float) -> tuple[Tensor, Tensor]:
+    """Each track's sum of squared reprojection errors in pixels (normalized coordinates over the
+    normalization's ``scale``) over the frames it is ``observed`` in, and that count: (F, n, 3)
+    homogeneous projections, (F, n, 2) points, (F, n) bool -> (n,), (n,)."""
+    squared = torch.where(observed, projection_distance_squared(projected, x), 0.0) / scale**2
+    return squared.sum(0), observed.sum(0)

@@ -80,6 +80,33 @@ def test_rigid_group_fits_the_reprojection_error(seed):
     assert float((group.rms.square() * 2 * group.frames_seen).sum()) <= float(true_cameras)
 
 
+def test_rigid_group_is_fitted_to_its_members_alone():
+    """Eight frames, two objects, 0.3 px noise, the static tracks as members: scrambling the other
+    tracks (their positions shuffled among them independently in every frame, so every frame holds
+    the same points and the normalization is unchanged, but no other track stays rigid) leaves the
+    members' cameras, residuals and verdicts exactly as they were: only the members weigh in."""
+    scene = _scene(frames=8, noise=0.3)
+    F_, N, _ = scene.tracks.shape
+    visible = torch.ones(F_, N, dtype=torch.bool)
+    members = scene.labels == 0
+    others = torch.nonzero(~members).flatten()
+    g = torch.Generator().manual_seed(1)
+    scrambled = scene.tracks.clone()
+    for f in range(F_):
+        scrambled[f, others] = scene.tracks[f, others[torch.randperm(others.numel(), generator=g)]]
+
+    def fit(tracks):
+        return rigid_group(tracks, visible, members, fundamental_ransac=Config().fundamental.ransac,
+                           resection_ransac=Config().moving_objects.resection_ransac, refinements=5,
+                           generator=torch.Generator().manual_seed(0))
+
+    plain, other = fit(scene.tracks), fit(scrambled)
+    torch.testing.assert_close(other.cameras, plain.cameras, rtol=0, atol=0)
+    torch.testing.assert_close(other.rms[members], plain.rms[members], rtol=0, atol=0)
+    assert torch.equal(other.members, plain.members)
+    assert bool(plain.members[members].float().mean() > 0.9) and not bool(plain.members[~members].any())
+
+
 @pytest.mark.parametrize("method, wrong_bound", [("rigid_groups", 0.05), ("both", 0.10), ("segmentation", 0.02)])
 def test_synthetic_moving_objects_are_found_over_whole_tracks(method, wrong_bound):
     """Six frames, two objects, 0.3 px noise: <= 1% of the moving tracks kept; <= 5% of the static

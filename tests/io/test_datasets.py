@@ -31,3 +31,18 @@ def test_relative_pose_is_a_proper_rotation(shared_data):
 def test_not_a_dataset_folder(tmp_path):
     with pytest.raises(InputError, match="not an Oxford VGG multi-view folder"):
         read_oxford_multiview(tmp_path)
+
+
+@pytest.mark.parametrize("root, name, background", [
+    ("hopkins155_subset", "cars1", 230), ("hopkins155_subset", "truck1", 83), ("hopkins155_subset", "kanatani1", 117),
+    ("hopkins155_dev", "cars8", 110),
+])
+def test_hopkins155_background_is_the_group_checked_on_the_preview(shared_data, root, name, background):
+    """Label 0 is the static background, by the groups checked on each preview.jpg (the frame-0
+    tracks, y up, overlaid): for cars8 that is group 1 (110 tracks on the trees and the traffic
+    light), not the highest label (82 tracks on the crossing SUV)."""
+    pytest.importorskip("scipy")
+    from torchsfm.io.datasets import read_hopkins155
+
+    sequence = read_hopkins155(shared_data / root / name)
+    assert int((sequence.labels == 0).sum()) == background

@@ -192,8 +192,11 @@ def ground_truth_pairs(data: str | Path) -> list[GroundTruthPair]:
 # Which Hopkins155 motion group is the static background. The labels are motion groups, not
 # background flags; checked by overlaying the tracks on each preview.jpg: the trees of cars1 and
 # truck1 (their tracks' y axis points up: 480 - y overlays the preview), the parking lot of
-# kanatani1, the room around the two checkerboard objects of 1R2RC.
-HOPKINS_BACKGROUND_GROUP = {"cars1": 2, "truck1": 2, "kanatani1": 1, "1R2RC": 3}
+# kanatani1, the room around the two checkerboard objects of 1R2RC, and the trees and traffic
+# light of cars8 (its frame 0 is the preview, y up: group 1 lies on the trees, group 2 on the
+# SUV that crosses — the one traffic sequence of hopkins155_dev where the highest label is not
+# the background; cars2B, cars4, cars6, cars10, people1 and kanatani2 follow the convention).
+HOPKINS_BACKGROUND_GROUP = {"cars1": 2, "truck1": 2, "kanatani1": 1, "1R2RC": 3, "cars8": 1}
 
 
 @dataclass

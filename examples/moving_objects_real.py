@@ -6,8 +6,9 @@ translates (checkerboard names with a T after the C; traffic and people except `
 the issue lists it, although its camera hardly moves: its background moves 2.5 px over the 30
 frames), and every clip of ``kt3dmoseg_dev`` (KITTI tracks with visibility gaps; background = the
 largest group). A Hopkins155 sequence's background is label 0 of
-:func:`~torchsfm.io.datasets.read_hopkins155`: the highest motion group, except where the preview
-shows another (``HOPKINS_BACKGROUND_GROUP``: cars1, truck1, kanatani1, 1R2RC, cars8).
+:func:`~torchsfm.io.datasets.read_hopkins155`: the group checked on the preview where one was
+(``HOPKINS_BACKGROUND_GROUP``: cars1, truck1, kanatani1, 1R2RC, cars8; in kanatani1 and cars8 it is
+not the highest), else the highest motion group.
 
 Methods (undetected = % of moving tracks kept, wrong = % of background tracks rejected):
 

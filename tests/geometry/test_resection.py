@@ -6,7 +6,9 @@ import torchsfm
 from torchsfm.config import LMConfig
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
 from torchsfm.estimators.resection_refinement import refine_pose
-from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
+from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.geometry.resection import (dlt_projection, p3p, pose_from_projection, reprojection_errors,
+                                         reprojection_errors_of_hypotheses)
 from torchsfm.geometry.rotation import axis_angle_to_rotation, rotation_angle
 
 DOUBLE = dict(dtype=torch.float64)
@@ -26,6 +28,25 @@ def _scene(n=100, noise=0.0, outliers=0.0, seed=0):
     x[:m] = (x[:m] + 50 + 200 * torch.rand(m, 2, generator=g, **DOUBLE)) % torch.tensor([639.0, 479.0], **DOUBLE)
     truth[:m] = False
     return X, x, R, t, truth
+
+
+def test_reprojection_errors_of_many_cameras_equal_one_at_a_time():
+    """The (N, 4) x (4, 3H) product gives each camera's ‖x - π(P X)‖² (float64, to 1e-12
+    relative against the projection written out), +inf for points behind a camera (here every
+    point, for a camera turned around); :func:`reprojection_errors` is its one-camera case."""
+    generator = torch.Generator().manual_seed(2)
+    X, x, *_ = _scene(40)
+    R = axis_angle_to_rotation(0.2 * torch.randn(6, 3, generator=generator, **DOUBLE))
+    t = torch.randn(6, 3, generator=generator, **DOUBLE)
+    P = K @ torch.cat([R, t[..., None]], -1)  # (6, 3, 4)
+    P[0] = -P[0]  # the same camera turned around: every point behind it
+    batched = reprojection_errors_of_hypotheses(P[None], X[None], x[None])[0]
+    assert batched.shape == (6, 40)
+    in_front = (to_homogeneous(X) @ P[1:].transpose(-1, -2))[..., 2] > 0
+    assert bool(batched[0].isinf().all()) and bool(in_front.all())
+    written_out = torch.stack([(from_homogeneous(to_homogeneous(X) @ camera.T) - x).square().sum(-1) for camera in P[1:]])
+    assert_close(batched[1:], written_out, rtol=1e-12, atol=0)
+    assert_close(reprojection_errors(P, X.expand(6, -1, -1), x.expand(6, -1, -1)), batched, rtol=1e-12, atol=0)
 
 
 def test_dlt_is_exact_with_six_points_and_more():

@@ -86,7 +86,7 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
     R, t = pose[..., :3], pose[..., 3]
     threshold_sq = settings.ransac.inlier_threshold**2
     if settings.refine:
-        support = reprojection_errors(found.model[:, None], X64[:, None], x64[:, None])[:, 0] < threshold_sq * settings.refine_support_factor**2
+        support = reprojection_errors(found.model, X64, x64) < threshold_sq * settings.refine_support_factor**2
         R, t, _ = refine_pose(R, t, X64, x64, K64, (support & mask).double(), config.lm)
     P = K64 @ torch.cat([R, t[..., None]], dim=-1)
     inliers = (reprojection_errors(P, X64, x64) < threshold_sq) & mask

@@ -15,7 +15,7 @@ from torchsfm.geometry.homography import homography_dlt, transfer_error_of_hypot
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
 from torchsfm.geometry.projective import projective_resection, reprojection_squared
-from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors
+from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors_of_hypotheses
 
 
 class FundamentalModel:
@@ -146,7 +146,7 @@ class ResectionModel:
         return self._projection(R, t)
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
-        return reprojection_errors(models, data[:, None, :, :3], data[:, None, :, 3:])
+        return reprojection_errors_of_hypotheses(models, data[..., :3], data[..., 3:])
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., 3:]

@@ -5,8 +5,12 @@ image points replaced by random pixels; 10 scenes each. Every method gets a 2 px
 confidence 0.99. Printed (medians): time per call, rotation error, camera-centre error (m),
 inlier recall and precision, and the time over torchsfm P3P's (> 1: torchsfm is faster).
 
+Then batches: B problems (B = 16, 64 scenes) in one ``estimate_absolute_pose`` call (P3P) against
+OpenCV's ``solvePnPRansac`` one problem at a time on the same scenes: milliseconds per problem,
+median recall / precision over the problems, and our time per problem over OpenCV's.
+
     pip install -e .[bench]
-    python benchmarks/resection.py [--scenes 10] [--threads 2]
+    python benchmarks/resection.py [--scenes 10] [--threads 2] [--batches 16,64]
 """
 
 from __future__ import annotations
@@ -70,10 +74,38 @@ def poselib_method(X, x, seed):
     return torch.from_numpy(np.array(pose.R)), torch.from_numpy(np.array(pose.t)), torch.from_numpy(np.array(info["inliers"]))
 
 
+def batch_rows(outliers: float, sizes: list[int]) -> None:
+    """One batched estimate_absolute_pose call per size against OpenCV one problem at a time."""
+    try:
+        import cv2  # noqa: F401 - only to know whether the peer is there
+    except ImportError as error:
+        print(f"OpenCV not installed ({error}): no batch comparison")
+        return
+    scenes = [scene(outliers, seed) for seed in range(max(sizes))]
+    run = torchsfm_method("p3p")
+    print(f"\n{outliers:.0%} outliers, batches (per problem, medians over the problems)")
+    print(f"{'B':>4s} {'ours ms':>8s} {'OpenCV ms':>9s} {'ours/OpenCV':>11s} {'recall':>7s} {'precis.':>7s}")
+    for B in sizes:
+        batch = scenes[:B]
+        X, x = torch.stack([s[0] for s in batch]), torch.stack([s[1] for s in batch])
+        run(X[:2], x[:2], 0)  # warm-up
+        start = time.perf_counter()
+        _, _, inliers = run(X, x, 0)
+        ours = (time.perf_counter() - start) / B
+        start = time.perf_counter()
+        for seed, (X_b, x_b, *_) in enumerate(batch):
+            opencv(X_b, x_b, seed)
+        theirs = (time.perf_counter() - start) / B
+        figures = [mask_recall_precision(inliers[b], truth) for b, (*_, truth) in enumerate(batch)]
+        print(f"{B:4d} {1000 * ours:8.2f} {1000 * theirs:9.2f} {ours / theirs:11.2f} "
+              f"{statistics.median(r for r, _ in figures):7.3f} {statistics.median(p for _, p in figures):7.3f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=int, default=10)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--batches", default="16,64", help="batch sizes (empty: none)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     methods = {"torchsfm P3P": torchsfm_method("p3p"), "torchsfm DLT": torchsfm_method("dlt")}
@@ -104,6 +136,8 @@ def main() -> None:
             reference = reference or milliseconds
             print(f"{name:26s} {milliseconds:8.2f} {statistics.median(rotation):8.4f} {statistics.median(centre):8.5f} "
                   f"{statistics.median(recall):7.3f} {statistics.median(precision):8.3f} {milliseconds / reference:10.2f}")
+        if args.batches:
+            batch_rows(outliers, [int(size) for size in args.batches.split(",")])
 
 
 if __name__ == "__main__":

@@ -38,9 +38,9 @@ def test_not_a_dataset_folder(tmp_path):
     ("hopkins155_dev", "cars8", 110),
 ])
 def test_hopkins155_background_is_the_group_checked_on_the_preview(shared_data, root, name, background):
-    """Label 0 is the static background, by the groups checked on each preview.jpg (the frame-0
-    tracks, y up, overlaid): for cars8 that is group 1 (110 tracks on the trees and the traffic
-    light), not the highest label (82 tracks on the crossing SUV)."""
+    """Label 0 is the static background, by the groups checked with the tracks overlaid on each
+    preview.jpg (``HOPKINS_BACKGROUND_GROUP``): for cars8 that is group 1 (110 tracks on the trees
+    and the traffic light in frame 0, y up), not the highest label (82 tracks on the crossing SUV)."""
     pytest.importorskip("scipy")
     from torchsfm.io.datasets import read_hopkins155
 

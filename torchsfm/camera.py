@@ -37,6 +37,15 @@ def from_homogeneous(x: Tensor) -> Tensor:
     return x[..., :-1] / x[..., -1:]
 
 
+def map_by_each(M: Tensor, x: Tensor) -> Tensor:
+    """Homogeneous images (*, N, H, 3) of the points x (*, N, D) under each of H matrices M
+    (*, H, 3, D + 1) (homographies, cameras), as one (N, D + 1) x (D + 1, 3H) product per
+    problem: no per-matrix copy of the points."""
+    H = M.shape[-3]
+    stacked = M.transpose(-1, -2).transpose(-3, -2).reshape(*M.shape[:-3], M.shape[-1], 3 * H)  # column 3k + j: row j of M_k
+    return (to_homogeneous(x) @ stacked).unflatten(-1, (H, 3))
+
+
 def check_intrinsics(**matrices: Tensor) -> None:
     """Raise if any K (*, 3, 3) is non-finite or singular (|det K| tiny against its scale)."""
     check_shapes(**{name: (K, "* 3 3") for name, K in matrices.items()})

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsfm.camera import to_homogeneous
+from torchsfm.camera import map_by_each, to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.numerics import floor_tiny
@@ -37,9 +37,7 @@ def transfer_error_of_hypotheses(H: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     """:func:`transfer_error` of h homographies (*, h, 3, 3) on the same (*, N, 2) points ->
     (*, h, N), as one (N, 3) x (3, 3h) product per problem: no per-hypothesis copy of the points,
     and no reduction over the coordinate pair (slow in torch)."""
-    h = H.shape[-3]
-    stacked = H.transpose(-1, -2).transpose(-3, -2).reshape(*H.shape[:-3], 3, 3 * h)  # column 3k + j: row j of H_k
-    mapped = (to_homogeneous(x1) @ stacked).unflatten(-1, (h, 3))  # (*, N, h, 3)
+    mapped = map_by_each(H, x1)  # (*, N, h, 3)
     w = mapped[..., 2]
     error = (mapped[..., 0] / w - x2[..., :1]).square_() + (mapped[..., 1] / w - x2[..., 1:]).square_()
     return torch.where(w.abs() > 1e-12, error, torch.full_like(error, float("inf"))).transpose(-1, -2)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsfm.camera import to_homogeneous
+from torchsfm.camera import map_by_each, to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import nearest_rotation
@@ -121,9 +121,7 @@ def reprojection_errors_of_hypotheses(P: Tensor, X: Tensor, x: Tensor) -> Tensor
     """:func:`reprojection_errors` of H cameras P (*, H, 3, 4) on the same points X (*, N, 3),
     x (*, N, 2) -> (*, H, N), as one (N, 4) x (4, 3H) product per problem: no per-hypothesis copy
     of the points, and no reduction over the coordinate pair (slow in torch)."""
-    H = P.shape[-3]
-    stacked = P.transpose(-1, -2).transpose(-3, -2).reshape(*P.shape[:-3], 4, 3 * H)  # column 3k + j: row j of P_k
-    projected = (to_homogeneous(X) @ stacked).unflatten(-1, (H, 3))  # (*, N, H, 3)
+    projected = map_by_each(P, X)  # (*, N, H, 3)
     depth = projected[..., 2]
     error = (projected[..., 0] / depth - x[..., :1]).square_() + (projected[..., 1] / depth - x[..., 1:]).square_()
     return torch.where(depth > 0, error, torch.full_like(error, float("inf"))).transpose(-1, -2)

@@ -550,14 +550,16 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
     sample's tracks. The models of all hypotheses sharing a frame pair are scored together on
-    that pair's points (no per-hypothesis copy of the tracks)."""
+    that pair's points (no per-hypothesis copy of the tracks), each into its own row of an
+    (H · P, N) table (P = m(m - 1)/2 pairs); the largest over a hypothesis' P rows is taken once
+    at the end."""
     H, m = frames.shape
     N, F = tracks.shape[1], tracks.shape[0]
     first, second = torch.triu_indices(m, m, 1, device=frames.device)
     a, b = frames[:, first], frames[:, second]  # (H, P) frame pairs of every hypothesis
-    models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(a.shape[1])], 1)
-    worst = torch.zeros(H, N, dtype=tracks.dtype, device=tracks.device)
-    pairs_seen = torch.zeros_like(worst, dtype=torch.long)
+    P = a.shape[1]
+    models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(P)], 1).reshape(-1, 3, 3)
+    per_pair = tracks.new_empty(H * P, N)  # row h * P + p: hypothesis h on its pair p, 0 where the track is not seen in it
     key = (a * F + b).reshape(-1)  # (H * P,), one hypothesis never holds a pair twice
     order = key.argsort()
     keys, counts = key[order].unique_consecutive(return_counts=True)
@@ -566,11 +568,10 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
         i, j = divmod(pair, F)
         both = visible[i] & visible[j]
         for part in rows.split(chunk):
-            h = part // a.shape[1]
-            residual = distance(models.reshape(-1, 3, 3)[part], tracks[i], tracks[j])
-            worst[h] = torch.maximum(worst[h], torch.where(both, residual, 0.0))  # residuals are >= 0 (or NaN)
-            pairs_seen[h] += both
-    defined = (pairs_seen > 0) & usable[:, None] & torch.isfinite(worst)
+            per_pair[part] = torch.where(both, distance(models[part], tracks[i], tracks[j]), 0.0)
+    worst = per_pair.view(H, P, N).amax(1)  # residuals are >= 0 (or NaN)
+    seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
+    defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
     return worst, defined.scatter(1, sample, False)
 
 

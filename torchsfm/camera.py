@@ -39,11 +39,16 @@ def from_homogeneous(x: Tensor) -> Tensor:
 
 def map_by_each(M: Tensor, x: Tensor) -> Tensor:
     """Homogeneous images (*, N, H, 3) of the points x (*, N, D) under each of H matrices M
-    (*, H, 3, D + 1) (homographies, cameras), as one (N, D + 1) x (D + 1, 3H) product per
-    problem: no per-matrix copy of the points."""
+    (*, H, 3, D + 1) (homographies, cameras): :func:`map_homogeneous_by_each` of x with a 1 appended."""
+    return map_homogeneous_by_each(M, to_homogeneous(x))
+
+
+def map_homogeneous_by_each(M: Tensor, X: Tensor) -> Tensor:
+    """Images (*, N, H, 3) of the homogeneous points X (*, N, K) under each of H matrices M
+    (*, H, 3, K), as one (N, K) x (K, 3H) product per problem: no per-matrix copy of the points."""
     H = M.shape[-3]
     stacked = M.transpose(-1, -2).transpose(-3, -2).reshape(*M.shape[:-3], M.shape[-1], 3 * H)  # column 3k + j: row j of M_k
-    return (to_homogeneous(x) @ stacked).unflatten(-1, (H, 3))
+    return (X @ stacked).unflatten(-1, (H, 3))
 
 
 def check_intrinsics(**matrices: Tensor) -> None:

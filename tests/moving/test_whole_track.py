@@ -10,8 +10,8 @@ from torchsfm.config import Config, with_overrides
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.geometry.fundamental import eight_point
 from torchsfm.geometry.normalization import hartley_normalize
-from torchsfm.geometry.projective import (canonical_cameras, inverse_iteration, projective_resection, reprojection_squared,
-                                         triangulate_multiview)
+from torchsfm.geometry.projective import (canonical_cameras, inverse_iteration, project, projection_distance_squared,
+                                         projective_resection, triangulate_multiview)
 from torchsfm.io.datasets import read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.static_tracks import rigid_group
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
@@ -38,7 +38,7 @@ def test_projective_geometry_is_exact_without_noise():
     X = triangulate_multiview(P[two], x[two], torch.ones(2, N, dtype=torch.float64))
     P = projective_resection(X.expand(F_, N, 4), x)
     X = triangulate_multiview(P, x, torch.ones(F_, N, dtype=torch.float64))
-    torch.testing.assert_close(reprojection_squared(P, X.expand(F_, N, 4), x).sqrt(), torch.zeros(F_, N, dtype=torch.float64),
+    torch.testing.assert_close(projection_distance_squared(project(P, X.expand(F_, N, 4)), x).sqrt(), torch.zeros(F_, N, dtype=torch.float64),
                                atol=1e-9, rtol=0)
 
 
@@ -75,7 +75,7 @@ def test_rigid_group_fits_the_reprojection_error(seed):
                         generator=torch.Generator().manual_seed(0))
     P = scene.K @ torch.cat([scene.R, scene.t[..., None]], -1)
     X = triangulate_multiview(P, scene.tracks, visible.double())
-    true_cameras = reprojection_squared(P, X.expand(F_, N, 4), scene.tracks).sum()
+    true_cameras = projection_distance_squared(project(P, X.expand(F_, N, 4)), scene.tracks).sum()
     assert group.members.all()
     assert float((group.rms.square() * 2 * group.frames_seen).sum()) <= float(true_cameras)
 

@@ -7,7 +7,7 @@ from torch.testing import assert_close
 
 from torchsfm.config import RansacConfig
 from torchsfm.geometry.fundamental import normalize_scale, sampson_error
-from torchsfm.robust.models import FundamentalModel, HomographyModel
+from torchsfm.robust.models import FundamentalModel, HomographyModel, ProjectiveResectionModel
 from torchsfm.robust.ransac import SCORINGS, ransac, required_trials
 from torchsfm.testing import synthetic_two_view
 
@@ -118,3 +118,24 @@ def test_a_round_scored_in_blocks_of_problems_gives_the_same_answer(monkeypatch)
     blocks = ransac(FundamentalModel(data), data, RansacConfig(), generator=torch.Generator().manual_seed(3))
     assert torch.equal(whole.model, blocks.model) and torch.equal(whole.inlier_mask, blocks.inlier_mask)
     assert torch.equal(whole.num_trials, blocks.num_trials)
+
+
+def test_projective_resection_residuals_of_many_cameras_equal_one_at_a_time():
+    """B = 2 problems, H = 5 cameras each scored in one product against each camera written out
+    (1e-12 relative); a point on a camera's principal plane (projection at infinity) gets +inf."""
+    g = torch.Generator().manual_seed(3)
+    X = torch.cat([torch.randn(2, 40, 3, generator=g, dtype=torch.float64), torch.ones(2, 40, 1, dtype=torch.float64)], -1)
+    x = torch.randn(2, 40, 2, generator=g, dtype=torch.float64)
+    cameras = torch.randn(2, 5, 3, 4, generator=g, dtype=torch.float64)
+    cameras[1, 2, 2] = torch.tensor([0.0, 0.0, 1.0, 0.0], dtype=torch.float64)
+    X[1, 7, 2] = 0.0  # p3ᵀX = 0 under camera (1, 2)
+    model = ProjectiveResectionModel(scale=0.5)
+    residuals = model.residuals(cameras, torch.cat([X, x], -1))  # (2, 5, 40)
+    for b in range(2):
+        for h in range(5):
+            projected = X[b] @ cameras[b, h].T
+            expected = ((projected[:, :2] / projected[:, 2:] - x[b]).square().sum(-1)) / 0.5**2
+            finite = projected[:, 2].abs() > 1e-12
+            assert_close(residuals[b, h, finite], expected[finite], rtol=1e-12, atol=0)
+            assert bool(torch.isinf(residuals[b, h, ~finite]).all())
+    assert bool(torch.isinf(residuals[1, 2, 7]))

@@ -44,12 +44,6 @@ def project(P: Tensor, X: Tensor) -> Tensor:
     return X @ P.transpose(-1, -2)
 
 
-def reprojection_squared(P: Tensor, X: Tensor, x: Tensor) -> Tensor:
-    """Squared distances between x (*, N, 2) and the projections of X (*, N, 4) by P (*, 3, 4):
-    (*, N); +inf for a projection at infinity."""
-    return projection_distance_squared(project(P, X), x)
-
-
 def projection_distance_squared(h: Tensor, x: Tensor) -> Tensor:
     """Squared distances between x (*, N, 2) and homogeneous projections h (*, N, 3) (from
     :func:`project`): (*, N); +inf for a projection at infinity."""

@@ -7,14 +7,14 @@ import copy
 import torch
 from torch import Tensor
 
-from torchsfm.camera import to_homogeneous
+from torchsfm.camera import map_homogeneous_by_each, to_homogeneous
 from torchsfm.geometry.essential import project_to_essential
 from torchsfm.geometry.five_point import five_point_essential
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error_of_hypotheses, seven_point_minimal
 from torchsfm.geometry.homography import homography_dlt, transfer_error_of_hypotheses
 from torchsfm.geometry.planar_flow import fit_planar_flow, planar_flow, planar_flow_design
 from torchsfm.geometry.normalization import apply_affine, hartley_normalize
-from torchsfm.geometry.projective import projective_resection, reprojection_squared
+from torchsfm.geometry.projective import projection_distance_squared, projective_resection
 from torchsfm.geometry.resection import dlt_projection, p3p, pose_from_projection, reprojection_errors_of_hypotheses
 
 
@@ -327,7 +327,8 @@ class ProjectiveResectionModel:
         return projective_resection(data[..., :4], data[..., 4:], weights)
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
-        return reprojection_squared(models, data[:, None, :, :4], data[:, None, :, 4:]) / self.scale**2
+        projected = map_homogeneous_by_each(models, data[..., :4])  # (B, N, H, 3): the points are not copied per model
+        return projection_distance_squared(projected, data[..., None, 4:]).transpose(-1, -2) / self.scale**2
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., 4:]

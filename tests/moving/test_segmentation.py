@@ -322,6 +322,49 @@ def test_preference_counts_and_similarity_are_exact():
     torch.testing.assert_close(similarity, expected, rtol=1e-6, atol=0)
 
 
+def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs():
+    """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,
+    against the definition written as loops: tracks with visibility gaps, hypotheses sharing
+    frame pairs, one unusable sample and one model that is not finite; exact."""
+    from torchsfm.moving.segmentation import worst_over_pairs
+
+    g = torch.Generator().manual_seed(5)
+    F, N, H = 6, 30, 9
+    tracks = 100 * torch.rand(F, N, 2, generator=g, dtype=torch.float64)
+    visible = torch.rand(F, N, generator=g) < 0.7
+    frames = torch.stack([torch.randperm(F, generator=g)[:3].sort().values for _ in range(H)])  # (H, 3)
+    frames[1] = frames[0]  # two hypotheses on the same pairs
+    sample = torch.stack([torch.randperm(N, generator=g)[:4] for _ in range(H)])
+    usable = torch.ones(H, dtype=torch.bool)
+    usable[2] = False
+
+    def fit(x1, x2):  # (H, s, 2) -> (H, 3, 3): a model that depends on the sample
+        models = torch.eye(3, dtype=torch.float64).repeat(x1.shape[0], 1, 1)
+        models[:, :2, 2] = (x2 - x1).mean(1)
+        models[3, 0, 0] = float("nan")
+        return models
+
+    def distance(models, x1, x2):  # (h, 3, 3), (N, 2), (N, 2) -> (h, N)
+        return (x1[None] @ models[:, :2, :2].transpose(-1, -2) + models[:, None, :2, 2] - x2[None]).square().sum(-1)
+
+    worst, defined = worst_over_pairs(tracks, visible, frames, sample, usable, fit, distance)
+    expected = torch.zeros(H, N, dtype=torch.float64)
+    seen = torch.zeros(H, N, dtype=torch.bool)
+    for h in range(H):
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            i, j = int(frames[h, p]), int(frames[h, q])
+            model = fit(tracks[i][sample], tracks[j][sample])[h]
+            residual = distance(model[None], tracks[i], tracks[j])[0]
+            both = visible[i] & visible[j]
+            expected[h] = torch.where(both, torch.maximum(expected[h], residual), expected[h])
+            seen[h] |= both
+    torch.testing.assert_close(worst, expected, rtol=0, atol=0, equal_nan=True)
+    expected_defined = seen & usable[:, None] & torch.isfinite(expected)
+    expected_defined[torch.arange(H)[:, None], sample] = False
+    assert torch.equal(defined, expected_defined)
+    assert bool(worst[3].isnan().any()) and not bool(defined[3].any()) and not bool(defined[2].any())
+
+
 def test_a_piece_of_the_scene_that_its_motion_explains_rejoins_it():
     """The static scene split in two (a third of its tracks labelled as a motion of their own)
     and two moving objects: the split-off piece rejoins the scene, the objects stay apart."""

@@ -38,8 +38,8 @@ def test_projective_geometry_is_exact_without_noise():
     X = triangulate_multiview(P[two], x[two], torch.ones(2, N, dtype=torch.float64))
     P = projective_resection(X.expand(F_, N, 4), x)
     X = triangulate_multiview(P, x, torch.ones(F_, N, dtype=torch.float64))
-    torch.testing.assert_close(projection_distance_squared(project(P, X.expand(F_, N, 4)), x).sqrt(), torch.zeros(F_, N, dtype=torch.float64),
-                               atol=1e-9, rtol=0)
+    reprojection = projection_distance_squared(project(P, X.expand(F_, N, 4)), x).sqrt()
+    torch.testing.assert_close(reprojection, torch.zeros(F_, N, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
 def test_inverse_iteration_finds_the_smallest_eigenvector_near_an_estimate():

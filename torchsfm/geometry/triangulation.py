@@ -108,7 +108,7 @@ def triangulate_midpoint(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tens
 
 def _polymul(p: Tensor, q: Tensor) -> Tensor:
     """Product of polynomials with ascending coefficients: (*, m), (*, n) -> (*, m + n - 1)."""
-    out = p.new_zeros(*torch.broadcast_shapes(p.shape[:-1], q.shape[:-1]), p.shape[-1] + q.shape[-1] - 1)
+    out = p.new_zeros(*(p[..., 0] * q[..., 0]).shape, p.shape[-1] + q.shape[-1] - 1)  # the broadcast leading shape
     for i in range(p.shape[-1]):
         out[..., i:i + q.shape[-1]] += p[..., i:i + 1] * q
     return out

@@ -83,6 +83,7 @@ SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
 CHUNK_ELEMENTS = 2**22  # numbers per hypothesis chunk: memory bounded for thousands of tracks
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
+BLOCK_ELEMENTS = 2**15  # tracks × set-and-pair problems fitted at a time (see ``track_residuals``)
 
 
 @dataclass
@@ -834,25 +835,38 @@ def track_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Ten
     strays), from all the set's tracks — or, given a ``generator`` (``fundamental`` only), from
     each pair's RANSAC inliers (``FundamentalConfig().ransac``): gross strays then cannot pull
     the first fit away."""
-    fit, distance = PAIR_MODELS[model]
     a, b = pairs[:, 0], pairs[:, 1]
-    x1, x2 = tracks[a], tracks[b]  # (P, N, 2)
     both = (visible[a] & visible[b])[None]  # (1, P, N)
     seen = members[:, None] & both  # (C, P, N)
+    C, P, N = seen.shape
+    x1, x2 = tracks[a].expand(C, -1, -1, -1), tracks[b].expand(C, -1, -1, -1)  # (C, P, N, 2)
     weights = seen.to(tracks.dtype)
-    usable = weights.sum(-1) >= SAMPLE_SIZE  # (C, P)
-    C = members.shape[0]
-    x1, x2 = x1.expand(C, -1, -1, -1), x2.expand(C, -1, -1, -1)
     if generator is not None and model == "fundamental":
         weights = ransac_inliers(x1, x2, seen, generator).to(tracks.dtype)
-    for _ in range(REFITS + 1):
-        residual = distance(fit(x1, x2, torch.where(usable[..., None], weights, 1.0)), x1, x2)  # (C, P, N)
-        half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, P)
-        weights = (seen & (residual <= half[..., None])).to(tracks.dtype)
-        usable &= weights.sum(-1) >= SAMPLE_SIZE
+    # a few pairs at a time: each (set, pair) fit is its own problem, and the DLT's (C, P, 2N, 9)
+    # design matrices of a long video's pairs at once stream from memory (ten times slower)
+    step = max(1, BLOCK_ELEMENTS // (C * N))
+    blocks = [_trimmed_pair_fits(x1[:, k:k + step], x2[:, k:k + step], seen[:, k:k + step], weights[:, k:k + step], model)
+              for k in range(0, P, step)]
+    residual, usable = (torch.cat(parts, 1) for parts in zip(*blocks))
     valid = both & usable[..., None]
     squares = torch.where(valid, residual.square(), 0.0).sum(1)
     return (squares / valid.sum(1).clamp_min(1)).sqrt(), valid.any(1)
+
+
+def _trimmed_pair_fits(x1: Tensor, x2: Tensor, seen: Tensor, weights: Tensor, model: str) -> tuple[Tensor, Tensor]:
+    """The least-trimmed-squares fits of :func:`track_residuals` for (C, p) set-and-pair problems:
+    (C, p, N, 2) positions, (C, p, N) bool seen and starting weights -> every track's (C, p, N)
+    distance to its problem's last fit, and (C, p) bool where a fit stood on ``SAMPLE_SIZE``
+    tracks throughout."""
+    fit, distance = PAIR_MODELS[model]
+    usable = seen.sum(-1) >= SAMPLE_SIZE  # (C, p)
+    for _ in range(REFITS + 1):
+        residual = distance(fit(x1, x2, torch.where(usable[..., None], weights, 1.0)), x1, x2)  # (C, p, N)
+        half = torch.where(seen, residual, torch.nan).nanmedian(-1).values  # (C, p)
+        weights = (seen & (residual <= half[..., None])).to(x1.dtype)
+        usable &= weights.sum(-1) >= SAMPLE_SIZE
+    return residual, usable
 
 
 def ransac_inliers(x1: Tensor, x2: Tensor, seen: Tensor, generator: torch.Generator) -> Tensor:

@@ -322,6 +322,30 @@ def test_preference_counts_and_similarity_are_exact():
     torch.testing.assert_close(similarity, expected, rtol=1e-6, atol=0)
 
 
+@pytest.mark.parametrize("model", ["fundamental", "homography"])
+def test_track_residuals_do_not_depend_on_how_many_pairs_are_fitted_at_once(model, monkeypatch):
+    """The trimmed per-pair fits of three track sets over a 12-frame sequence with gaps, one pair
+    per block against all pairs in one block: the same residuals (1e-9 px: the batched solvers'
+    rounding may differ with the batch) and the same judged tracks."""
+    from torchsfm.moving import segmentation
+    from torchsfm.moving.segmentation import frame_pairs, track_residuals
+
+    g = torch.Generator().manual_seed(8)
+    F, N = 12, 200
+    base = 600 * torch.rand(N, 2, generator=g, dtype=torch.float64)
+    tracks = torch.stack([base * (1 + 0.01 * f) + f + 0.3 * torch.randn(N, 2, generator=g, dtype=torch.float64) for f in range(F)])
+    visible = torch.rand(F, N, generator=g) < 0.8
+    members = torch.rand(3, N, generator=g) < 0.5
+    pairs = frame_pairs(visible)
+    monkeypatch.setattr(segmentation, "BLOCK_ELEMENTS", 1)
+    one, judged_one = track_residuals(tracks, visible, members, pairs, model)
+    monkeypatch.setattr(segmentation, "BLOCK_ELEMENTS", 10**9)
+    whole, judged_whole = track_residuals(tracks, visible, members, pairs, model)
+    assert pairs.shape[0] > 3 and bool(judged_whole.any())
+    assert torch.equal(judged_one, judged_whole)
+    torch.testing.assert_close(one[judged_one], whole[judged_whole], rtol=0, atol=1e-9)
+
+
 def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs():
     """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,
     against the definition written as loops: tracks with visibility gaps, hypotheses sharing

@@ -93,7 +93,8 @@ def main() -> None:
     except ImportError as error:
         print(f"OpenCV not installed ({error}); pip install -e .[bench]")
     config = Config()
-    print(f"{'pair':16s} {'matches':>7s} {'true':>5s} {'AUC':>5s}  " + "  ".join(f"{name + ' ms / trials / recall / precision':>44s}" for name in methods))
+    heading = "  ".join(f"{name + ' ms / trials / recall / precision':>44s}" for name in methods)
+    print(f"{'pair':16s} {'matches':>7s} {'true':>5s} {'AUC':>5s}  {heading}")
     rows = {name: [] for name in methods}
     warm = True
     for folder, gaps in PAIRS.items():
@@ -123,9 +124,11 @@ def main() -> None:
                     cells.append(f"{1000 * seconds:8.1f} / {'-' if trials is None else int(trials):>5} / {recall:.3f} / {precision:.3f}")
                 warm = False
                 name = f"{folder.split('_')[1]} {i}-{j}"
-                print(f"{name:16s} {x1.shape[0]:7d} {float(true.double().mean()):5.2f} {auc:5.2f}  " + "  ".join(f"{cell:>44s}" for cell in cells))
+                results = "  ".join(f"{cell:>44s}" for cell in cells)
+                print(f"{name:16s} {x1.shape[0]:7d} {float(true.double().mean()):5.2f} {auc:5.2f}  {results}")
     print(f"\nover the {len(rows['torchsfm'])} pairs with {MIN_TRUE} true matches or more")
-    print(f"{'method':16s} {'median ms':>9s} {'median recall':>13s} {'worst recall':>12s} {'median precision':>16s} {'worst precision':>15s}")
+    print(f"{'method':16s} {'median ms':>9s} {'median recall':>13s} {'worst recall':>12s} "
+          f"{'median precision':>16s} {'worst precision':>15s}")
     for name, values in rows.items():
         times, recalls, precisions = zip(*values)
         print(f"{name:16s} {statistics.median(times):9.1f} {statistics.median(recalls):13.3f} {min(recalls):12.3f} "

@@ -74,7 +74,7 @@ def main() -> None:
         print(f"corner agreement over {every.size} corners: median {np.median(every):.3f} px, 95% {np.quantile(every, 0.95):.3f} px")
 
     board = board_points(PATTERN, 1.0)
-    _, first_seconds = timed(lambda: calibrate_camera(board, torch.stack(ours)))  # warm-up: torch.func's first call
+    _, first_seconds = timed(lambda: calibrate_camera(board, torch.stack(ours)))  # the process's first call, apart
     calibration, ours_seconds = timed(lambda: calibrate_camera(board, torch.stack(ours)))
     objects = [np.concatenate([board.numpy(), np.zeros((board.shape[0], 1))], 1).astype(np.float32)] * len(theirs)
     images = [c.astype(np.float32) for c in theirs]
@@ -92,7 +92,7 @@ def main() -> None:
     for name, rms, fx, fy, cx, cy, distortion, seconds in rows:
         print(f"{name:26s} {rms:7.3f} {float(fx):9.2f} {float(fy):9.2f} {float(cx):8.2f} {float(cy):8.2f} {seconds:6.2f}  "
               + ", ".join(f"{d:.4f}" for d in distortion))
-    print(f"(torchsfm's first calibration in a process took {first_seconds:.2f} s: torch.func's one-time set-up)")
+    print(f"(torchsfm's first calibration in a process took {first_seconds:.2f} s)")
     print(f"\ntorchsfm vs OpenCV (k1, k2): fx {100 * (float(K[0, 0]) / K2[0, 0] - 1):+.2f}%, fy {100 * (float(K[1, 1]) / K2[1, 1] - 1):+.2f}%, "
           f"RMS ratio {calibration.rms / rms2:.3f}; vs OpenCV (5): fx {100 * (float(K[0, 0]) / K5[0, 0] - 1):+.2f}%, "
           f"fy {100 * (float(K[1, 1]) / K5[1, 1] - 1):+.2f}%, RMS ratio {calibration.rms / rms5:.3f}")

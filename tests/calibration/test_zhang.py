@@ -81,3 +81,43 @@ def test_bad_input():
     with pytest.raises(ShapeError, match="image_points"):
         calibrate_camera(BOARD, corners[:, :10])
     assert math.isfinite(calibrate_camera(BOARD, corners).rms)
+
+
+def test_analytic_jacobians_equal_forward_mode_autodiff(monkeypatch):
+    """The two LMs' analytic Jacobians (the board homographies; K, distortion and the poses
+    with R ← exp([ω]x) R) against forward-mode autodiff of the same residuals, at a distorted
+    state off the optimum: 1e-9 relative."""
+    from torchsfm.calibration import zhang
+    from torchsfm.optim.lm import forward_jacobian
+
+    R, t = visible_board_poses(4, 3, K_TRUE, DISTORTION_TRUE)
+    distortion = torch.tensor([-0.2, 0.05], dtype=torch.float64)
+    state = torch.cat([torch.tensor([610.0, 590.0, 322.0, 236.0], dtype=torch.float64), distortion,
+                       torch.cat([R.flatten(1), t], -1).flatten()])[None]
+    image = project_board(K_TRUE, DISTORTION_TRUE, R, t, BOARD)
+
+    def residuals(params):
+        return (project_board(*zhang._unpack(params[0], 4), BOARD) - image).reshape(1, -1)
+
+    expected = forward_jacobian(residuals, state, zhang._retract, 6 + 6 * 4)[0]
+    analytic = zhang._projection_jacobian(*zhang._unpack(state[0], 4), BOARD)
+    assert_close(analytic, expected, rtol=1e-9, atol=1e-9 * float(expected.abs().max()))
+
+    H = view_homographies(BOARD, image, LMConfig()).flatten(1)[:, :8] * 1.01  # off the optimum
+    points = torch.cat([BOARD, torch.ones_like(BOARD[:, :1])], -1)
+
+    def homography_residuals(h):
+        q = points @ torch.cat([h, torch.ones_like(h[:, :1])], -1).reshape(-1, 3, 3).transpose(-1, -2)
+        return (q[..., :2] / q[..., 2:] - image).flatten(1)
+
+    captured = {}
+    original = zhang.levenberg_marquardt
+
+    def capture(residuals, params, config, **options):  # the Jacobian view_homographies gives its LM, at H
+        captured["jacobian"] = options["jacobian"](H)
+        return original(residuals, params, config, **options)
+
+    monkeypatch.setattr(zhang, "levenberg_marquardt", capture)
+    view_homographies(BOARD, image, LMConfig())
+    expected = forward_jacobian(homography_residuals, H, lambda p, d: p + d, 8)
+    assert_close(captured["jacobian"], expected, rtol=1e-9, atol=1e-9 * float(expected.abs().max()))

@@ -4,7 +4,8 @@ Per view, the homography H from the board plane (Z = 0) to the image: the normal
 on the reprojection error (eq. A.3–A.4). Each H = λ K [r1 r2 t] gives two linear constraints on
 B = K⁻ᵀK⁻¹ (eq. A.5–A.6); their null vector gives K in closed form (eq. A.7) and each view's pose
 (eq. A.8). Finally one LM over fx, fy, cx, cy, k1, k2 and every pose minimizes the reprojection
-error of all corners (the eq. A.8 cost with the radial model of :mod:`torchsfm.camera`).
+error of all corners (the eq. A.8 cost with the radial model of :mod:`torchsfm.camera`). Both LMs
+use analytic Jacobians (each pose's rotation updated on the manifold, R ← exp([ω]x) R).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from torchsfm.config import CalibrationConfig, LMConfig
 from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughDataError
 from torchsfm.geometry.homography import homography_dlt
 from torchsfm.geometry.normalization import hartley_normalize
-from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, rotation_to_axis_angle
+from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, skew
 from torchsfm.optim.lm import levenberg_marquardt
 from torchsfm.validation import check_finite, check_floating, check_shapes
 
@@ -54,10 +55,6 @@ def board_points(pattern: tuple[int, int], square: float) -> Tensor:
     return square * torch.stack([i, j], dim=-1).reshape(-1, 2)
 
 
-def _apply(H: Tensor, x: Tensor) -> Tensor:
-    return from_homogeneous(to_homogeneous(x) @ H.transpose(-1, -2))
-
-
 def view_homographies(board: Tensor, image_points: Tensor, lm: LMConfig) -> Tensor:
     """Board plane → image homographies (V, 3, 3), h33 = 1: normalized DLT, then LM on the
     reprojection error (eq. A.3–A.4), all views at once."""
@@ -65,11 +62,24 @@ def view_homographies(board: Tensor, image_points: Tensor, lm: LMConfig) -> Tens
     H = homography_dlt(board.expand(V, -1, -1), image_points)
     H = H / H[:, 2:, 2:]
 
-    def residuals(h: Tensor) -> Tensor:
-        matrices = torch.cat([h, torch.ones_like(h[:, :1])], dim=-1).reshape(V, 3, 3)
-        return (_apply(matrices, board.expand(V, -1, -1)) - image_points).flatten(1)
+    points = to_homogeneous(board)  # (N, 3)
 
-    refined = levenberg_marquardt(residuals, H.flatten(1)[:, :8], lm).params
+    def mapped(h: Tensor) -> tuple[Tensor, Tensor]:  # (V, 8) -> (V, N, 3) H p, (V, N, 2) pixels
+        q = points @ torch.cat([h, torch.ones_like(h[:, :1])], dim=-1).reshape(V, 3, 3).transpose(-1, -2)
+        return q, q[..., :2] / q[..., 2:]
+
+    def residuals(h: Tensor) -> Tensor:
+        return (mapped(h)[1] - image_points).flatten(1)
+
+    def jacobian(h: Tensor) -> Tensor:  # (V, 2N, 8): d(u, v) / d(h11 .. h32) of u = q1 / q3, v = q2 / q3
+        q, pixels = mapped(h)
+        scaled = points / q[..., 2:]  # (V, N, 3): p / q3
+        zeros = torch.zeros_like(scaled)
+        du = torch.cat([scaled, zeros, -pixels[..., :1] * scaled[..., :2]], dim=-1)  # (V, N, 8)
+        dv = torch.cat([zeros, scaled, -pixels[..., 1:] * scaled[..., :2]], dim=-1)
+        return torch.stack([du, dv], dim=2).flatten(1, 2)
+
+    refined = levenberg_marquardt(residuals, H.flatten(1)[:, :8], lm, jacobian=jacobian).params
     return torch.cat([refined, torch.ones_like(refined[:, :1])], dim=-1).reshape(V, 3, 3)
 
 
@@ -137,11 +147,57 @@ def project_board(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, board: Te
 
 
 def _unpack(params: Tensor, V: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The state (6 + 12 V,) = fx, fy, cx, cy, k1, k2, then every view's R (9) and t (3) ->
+    K (3, 3), (k1, k2), R (V, 3, 3), t (V, 3)."""
     fx, fy, cx, cy, k1, k2 = params[:6].unbind()
     zero, one = torch.zeros_like(fx), torch.ones_like(fx)
     K = torch.stack([torch.stack([fx, zero, cx]), torch.stack([zero, fy, cy]), torch.stack([zero, zero, one])])
-    poses = params[6:].reshape(V, 6)
-    return K, torch.stack([k1, k2]), axis_angle_to_rotation(poses[:, :3]), poses[:, 3:]
+    poses = params[6:].reshape(V, 12)
+    return K, torch.stack([k1, k2]), poses[:, :9].reshape(V, 3, 3), poses[:, 9:]
+
+
+def _retract(params: Tensor, delta: Tensor) -> Tensor:
+    """(1, 6 + 12 V) state after a (1, 6 + 6 V) step: intrinsics and t added, each R ← exp([ω]x) R."""
+    V = (params.shape[1] - 6) // 12
+    poses, steps = params[0, 6:].reshape(V, 12), delta[0, 6:].reshape(V, 6)
+    R = axis_angle_to_rotation(steps[:, :3]) @ poses[:, :9].reshape(V, 3, 3)
+    return torch.cat([params[0, :6] + delta[0, :6], torch.cat([R.flatten(1), poses[:, 9:] + steps[:, 3:]], -1).flatten()])[None]
+
+
+def _projection_jacobian(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, board: Tensor) -> Tensor:
+    """d pixels / d step of :func:`project_board` for :func:`_retract`'s steps: (V N 2, 6 + 6 V),
+    rows in the order of the (V, N, 2) pixels. With Y = R X + t, (a, b) = (Y1, Y2) / Y3,
+    d = 1 + k1 r² + k2 r⁴ (r² = a² + b²) and u = fx a d + cx, v = fy b d + cy: the intrinsics'
+    columns directly, then d(u, v)/d(a, b) · d(a, b)/dY · dY/d(ω, t), where dY/dω = -[R X]x
+    (the step turns the board about the camera's origin) and dY/dt = I."""
+    V, N = R.shape[0], board.shape[0]
+    X = torch.cat([board, torch.zeros_like(board[:, :1])], dim=-1)
+    turned = X @ R.transpose(-1, -2)  # (V, N, 3): R X
+    Y = turned + t[:, None]
+    a, b = Y[..., 0] / Y[..., 2], Y[..., 1] / Y[..., 2]
+    r2 = a * a + b * b
+    k1, k2 = distortion[0], distortion[1]
+    d = 1 + k1 * r2 + k2 * r2 * r2
+    slope = 2 * (k1 + 2 * k2 * r2)  # d(d)/d(r²) times 2: d(d)/da = slope a
+    fx, fy = K[0, 0], K[1, 1]
+    zero, one = torch.zeros_like(a), torch.ones_like(a)
+    du = torch.stack([a * d, zero, one, zero, fx * a * r2, fx * a * r2 * r2], -1)  # (V, N, 6): fx, fy, cx, cy, k1, k2
+    dv = torch.stack([zero, b * d, zero, one, fy * b * r2, fy * b * r2 * r2], -1)
+    intrinsics = torch.stack([du, dv], dim=2)  # (V, N, 2, 6)
+    d_ab = torch.stack([torch.stack([fx * (d + slope * a * a), fx * slope * a * b], -1),
+                        torch.stack([fy * slope * a * b, fy * (d + slope * b * b)], -1)], dim=-2)  # (V, N, 2, 2)
+    inverse_depth = 1 / Y[..., 2]
+    d_Y = torch.stack([torch.stack([inverse_depth, zero, -a * inverse_depth], -1),
+                       torch.stack([zero, inverse_depth, -b * inverse_depth], -1)], dim=-2)  # (V, N, 2, 3)
+    chain = d_ab @ d_Y  # (V, N, 2, 3): d pixels / dY
+    pose = torch.cat([chain @ -skew(turned), chain], dim=-1)  # (V, N, 2, 6): ω, t
+    J = torch.zeros(V, N, 2, 6 + 6 * V, dtype=R.dtype, device=R.device)
+    J[..., :6] = intrinsics
+    view = torch.arange(V, device=R.device)
+    columns = 6 + 6 * view[:, None] + torch.arange(6, device=R.device)  # (V, 6)
+    J[view[:, None, None, None], torch.arange(N, device=R.device)[None, :, None, None],
+      torch.arange(2, device=R.device)[None, None, :, None], columns[:, None, None, :]] = pose
+    return J.reshape(V * N * 2, 6 + 6 * V)
 
 
 def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationConfig | None = None) -> Calibration:
@@ -180,13 +236,17 @@ def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationCon
         K[0, 1] = 0.0
     R, t = extrinsics_from_homographies(K, H)
     initial = torch.cat([torch.stack([K[0, 0], K[1, 1], K[0, 2], K[1, 2]]), torch.zeros(2, dtype=torch.float64),
-                         torch.cat([rotation_to_axis_angle(R), t], dim=-1).flatten()])
+                         torch.cat([R.flatten(1), t], dim=-1).flatten()])
 
     def residuals(params: Tensor) -> Tensor:  # (1, S) -> (1, 2 V N)
         K_, distortion, R_, t_ = _unpack(params[0], V)
         return (project_board(K_, distortion, R_, t_, board) - image_points).reshape(1, -1)
 
-    params = levenberg_marquardt(residuals, initial[None], config.lm).params[0]
+    def jacobian(params: Tensor) -> Tensor:  # (1, S) -> (1, 2 V N, 6 + 6 V)
+        return _projection_jacobian(*_unpack(params[0], V), board)[None]
+
+    params = levenberg_marquardt(residuals, initial[None], config.lm, retract=_retract, tangent_dim=6 + 6 * V,
+                                 jacobian=jacobian).params[0]
     K, distortion, R, t = _unpack(params, V)
     errors = (project_board(K, distortion, R, t, board) - image_points).square().sum(-1)  # (V, N)
     return Calibration(K=K, distortion=distortion, R=R, t=t, view_rms=errors.mean(-1).sqrt(), rms=float(errors.mean().sqrt()))

@@ -191,13 +191,10 @@ def _projection_jacobian(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, bo
                        torch.stack([zero, inverse_depth, -b * inverse_depth], -1)], dim=-2)  # (V, N, 2, 3)
     chain = d_ab @ d_Y  # (V, N, 2, 3): d pixels / dY
     pose = torch.cat([chain @ -skew(turned), chain], dim=-1)  # (V, N, 2, 6): ω, t
-    J = torch.zeros(V, N, 2, 6 + 6 * V, dtype=R.dtype, device=R.device)
-    J[..., :6] = intrinsics
+    poses = pose.new_zeros(V, N, 2, V, 6)  # a view's rows depend on its own pose only
     view = torch.arange(V, device=R.device)
-    columns = 6 + 6 * view[:, None] + torch.arange(6, device=R.device)  # (V, 6)
-    J[view[:, None, None, None], torch.arange(N, device=R.device)[None, :, None, None],
-      torch.arange(2, device=R.device)[None, None, :, None], columns[:, None, None, :]] = pose
-    return J.reshape(V * N * 2, 6 + 6 * V)
+    poses[view, :, :, view] = pose
+    return torch.cat([intrinsics, poses.flatten(-2)], dim=-1).reshape(V * N * 2, 6 + 6 * V)
 
 
 def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationConfig | None = None) -> Calibration:

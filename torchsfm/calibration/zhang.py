@@ -64,23 +64,29 @@ def view_homographies(board: Tensor, image_points: Tensor, lm: LMConfig) -> Tens
 
     points = to_homogeneous(board)  # (N, 3)
 
-    def mapped(h: Tensor) -> tuple[Tensor, Tensor]:  # (V, 8) -> (V, N, 3) H p, (V, N, 2) pixels
-        q = points @ torch.cat([h, torch.ones_like(h[:, :1])], dim=-1).reshape(V, 3, 3).transpose(-1, -2)
-        return q, q[..., :2] / q[..., 2:]
-
     def residuals(h: Tensor) -> Tensor:
-        return (mapped(h)[1] - image_points).flatten(1)
+        return (_map_board(h, points)[1] - image_points).flatten(1)
 
-    def jacobian(h: Tensor) -> Tensor:  # (V, 2N, 8): d(u, v) / d(h11 .. h32) of u = q1 / q3, v = q2 / q3
-        q, pixels = mapped(h)
-        scaled = points / q[..., 2:]  # (V, N, 3): p / q3
-        zeros = torch.zeros_like(scaled)
-        du = torch.cat([scaled, zeros, -pixels[..., :1] * scaled[..., :2]], dim=-1)  # (V, N, 8)
-        dv = torch.cat([zeros, scaled, -pixels[..., 1:] * scaled[..., :2]], dim=-1)
-        return torch.stack([du, dv], dim=2).flatten(1, 2)
-
-    refined = levenberg_marquardt(residuals, H.flatten(1)[:, :8], lm, jacobian=jacobian).params
+    refined = levenberg_marquardt(residuals, H.flatten(1)[:, :8], lm, jacobian=lambda h: _homography_jacobian(h, points)).params
     return torch.cat([refined, torch.ones_like(refined[:, :1])], dim=-1).reshape(V, 3, 3)
+
+
+def _map_board(h: Tensor, points: Tensor) -> tuple[Tensor, Tensor]:
+    """Homographies (V, 8) (h33 = 1) applied to homogeneous board points (N, 3) -> (V, N, 3)
+    q = H p and (V, N, 2) pixels q1 / q3, q2 / q3."""
+    q = points @ torch.cat([h, torch.ones_like(h[:, :1])], dim=-1).reshape(-1, 3, 3).transpose(-1, -2)
+    return q, q[..., :2] / q[..., 2:]
+
+
+def _homography_jacobian(h: Tensor, points: Tensor) -> Tensor:
+    """d pixels / d(h11 .. h32) of :func:`_map_board`: (V, 2N, 8), rows in the order of the
+    (V, N, 2) pixels (u = q1 / q3: p / q3 on h11..h13, -u p / q3 on h31, h32; v likewise)."""
+    q, pixels = _map_board(h, points)
+    scaled = points / q[..., 2:]  # (V, N, 3): p / q3
+    zeros = torch.zeros_like(scaled)
+    du = torch.cat([scaled, zeros, -pixels[..., :1] * scaled[..., :2]], dim=-1)  # (V, N, 8)
+    dv = torch.cat([zeros, scaled, -pixels[..., 1:] * scaled[..., :2]], dim=-1)
+    return torch.stack([du, dv], dim=2).flatten(1, 2)
 
 
 def _constraint(H: Tensor, i: int, j: int) -> Tensor:

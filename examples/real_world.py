@@ -3,9 +3,10 @@
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61 degrees apart) and
-0, 4, 8, 10; the KITTI odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth
-frame of it (about 6, 10 and 12 m apart), and its
-frames shuffled; Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
+0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double size (1536x1024) and with
+views 0 and 4 turned to portrait (each view its own K); the KITTI odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth
+frame of it (about 6, 10 and 12 m apart), its frames shuffled and in reverse (the camera
+backing away); Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
@@ -25,19 +26,49 @@ import time
 from pathlib import Path
 
 import torch
+import torch.nn.functional as functional
 
 import torchsfm
 from torchsfm.camera import decompose_projection
 from torchsfm.config import with_overrides
 from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors
+from torchsfm.images import read_image
 from torchsfm.io.datasets import StrechaSequence, read_kitti_odometry, read_oxford_multiview, read_strecha
+from torchsfm.visualization import write_png
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
     return StrechaSequence(images=[sequence.images[i] for i in order], K=sequence.K[order], R=sequence.R[order], t=sequence.t[order])
+
+
+def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = ()) -> StrechaSequence:
+    """The sequence's images resized by ``scale`` (antialiased bilinear), the ``turned``
+    views then turned 90 degrees clockwise (portrait shots), written as PNGs to ``folder``; K, R
+    and t follow: pixel centres scale about (-0.5, -0.5), and a turned camera's K swaps its axes
+    while its R and t turn about the optical axis."""
+    turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
+    paths, Ks, Rs, ts = [], [], [], []
+    for v, path in enumerate(sequence.images):
+        image, K, R, t = read_image(path), sequence.K[v].clone(), sequence.R[v], sequence.t[v]
+        if scale != 1.0:
+            size = (round(image.shape[-2] * scale), round(image.shape[-1] * scale))
+            image = functional.interpolate(image[None].float(), size=size, mode="bilinear", antialias=True)[0].round().clamp(0, 255).byte()
+            K[:2, :2] *= scale
+            K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+        if v in turned:
+            height = image.shape[-2]
+            image = torch.rot90(image, k=-1, dims=(-2, -1))
+            K = torch.tensor([[K[1, 1], 0.0, height - 1 - K[1, 2]], [0.0, K[0, 0], K[0, 2]], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            R, t = turn @ R, turn @ t
+        paths.append(folder / f"{v:04d}.png")
+        write_png(paths[-1], image.expand(3, -1, -1))
+        Ks.append(K)
+        Rs.append(R)
+        ts.append(t)
+    return StrechaSequence(images=paths, K=torch.stack(Ks), R=torch.stack(Rs), t=torch.stack(ts))
 
 
 def read_merton(folder: Path) -> StrechaSequence:
@@ -48,11 +79,18 @@ def read_merton(folder: Path) -> StrechaSequence:
     return StrechaSequence(images=dataset.images, K=K, R=R, t=t)
 
 
-def cases(data: Path) -> dict[str, StrechaSequence]:
+def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence]:
+    """The chosen cases by name (all of them where ``names`` is empty); the resized and turned
+    ones are written under ``work``."""
     fountain, herzjesu = read_strecha(data / "strecha_fountain_P11"), read_strecha(data / "strecha_herzjesu_P8")
     kitti = read_kitti_odometry(data / "kitti_odom_seq06_000-050")
     shuffle = lambda n: torch.randperm(n, generator=torch.Generator().manual_seed(7)).tolist()  # noqa: E731
-    return {
+    made = {
+        "fountain_half": lambda: transformed(fountain, work / "inputs" / "fountain_half", scale=0.5),
+        "herzjesu_double": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_double", scale=2.0),
+        "herzjesu_portrait": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_portrait", turned=(0, 4)),
+    }
+    chosen = {
         "fountain": fountain,
         "fountain_shuffled": subset(fountain, shuffle(11)),
         "fountain_every3": subset(fountain, list(range(0, 11, 3))),
@@ -69,8 +107,11 @@ def cases(data: Path) -> dict[str, StrechaSequence]:
         "kitti06_every8": subset(kitti, list(range(0, 51, 8))),
         "kitti06_every10": subset(kitti, list(range(0, 51, 10))),
         "kitti06_shuffled": subset(kitti, shuffle(51)),
+        "kitti06_reversed": subset(kitti, list(range(50, -1, -1))),
         "merton": read_merton(data / "oxford_merton1"),
     }
+    chosen.update({name: make() for name, make in made.items() if not names or name in names})
+    return {name: chosen[name] for name in names} if names else chosen
 
 
 def errors_row(R: torch.Tensor, t: torch.Tensor, sequence: StrechaSequence, index: list[int]) -> str:
@@ -166,10 +207,8 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one torchsfm config value")
     args = parser.parse_args()
     config = with_overrides(torchsfm.Config(), args.set)
-    chosen = cases(args.data)
-    names = [name for name in args.cases.split(",") if name] or list(chosen)
-    for name in names:
-        sequence = chosen[name]
+    chosen = cases(args.data, args.work, [name for name in args.cases.split(",") if name])
+    for name, sequence in chosen.items():
         print(f"{name} ({len(sequence.images)} images)")
         print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config)}", flush=True)
         if not args.no_colmap:

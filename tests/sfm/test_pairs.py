@@ -7,7 +7,7 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, select_pairs
+from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, select_pairs, turned_homographies
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -76,6 +76,23 @@ def test_predicted_homography_follows_a_large_shift():
     moved = points @ H.T
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:] - points[:, :2],
                                torch.tensor([[120.0, -40.0]], dtype=torch.float64).expand(3, 2), atol=2.0, rtol=0)
+
+
+@pytest.mark.parametrize("quarter_turns", [-1, 1, 2])
+def test_a_view_turned_by_quarter_turns_gets_its_homography_and_an_upright_one_none(quarter_turns):
+    """A view and the same view turned (a portrait shot of a landscape set, upside down): the
+    turned patches' homography maps every point where the turn puts it, within 2 px; a pair
+    that is not turned (shifted by 30 px) gets no turned homography."""
+    grey = _bundled_greys()[0]
+    H, W = grey.shape[-2:]
+    turned = torch.rot90(grey, k=quarter_turns, dims=(-2, -1))
+    features = coarse_features([grey, turned, torch.roll(grey, shifts=30, dims=-1)], PairsConfig())
+    found = turned_homographies(features, [(0, 1), (0, 2)], PairsConfig(), torch.Generator().manual_seed(0))
+    assert list(found) == [(0, 1)]
+    x, y = torch.tensor([200.0, 500.0, 300.0], dtype=torch.float64), torch.tensor([200.0, 300.0, 400.0], dtype=torch.float64)
+    expected = {-1: (H - 1 - y, x), 1: (y, W - 1 - x), 2: (W - 1 - x, H - 1 - y)}[quarter_turns]  # torch.rot90's turns
+    moved = torch.stack([x, y, torch.ones_like(x)], -1) @ found[(0, 1)].T
+    torch.testing.assert_close(moved[:, :2] / moved[:, 2:], torch.stack(expected, -1), atol=2.0, rtol=0)
 
 
 def test_bad_mode_is_named():

@@ -177,15 +177,34 @@ def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Ge
 
 
 def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
-                        generator: torch.Generator | None = None
+                        generator: torch.Generator | None = None, turn: int = 0
                         ) -> tuple[dict[tuple[int, int], Tensor | None], dict[tuple[int, int], int]]:
-    """:func:`fit_homographies` of the view pairs' coarse mutual-best matches."""
+    """:func:`fit_homographies` of the view pairs' coarse mutual-best matches, the second view's
+    patches turned by ``turn`` quarter turns (an image turned a quarter turn turns its patches
+    alike: the NCC of a portrait shot against a landscape one)."""
+    side = 2 * config.patch_half_size + 1
+    order = torch.rot90(torch.arange(side * side).reshape(side, side), turn).flatten()  # a patch's pixels, turned
     matches = []
     for i, j in pairs:
         ki, kj = features.valid[i], features.valid[j]
-        a, b = _mutual_best(features.patches[i][ki] @ features.patches[j][kj].T, config.ncc_threshold)
+        a, b = _mutual_best(features.patches[i][ki] @ features.patches[j][kj][:, order].T, config.ncc_threshold)
         matches.append(torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1))
     return fit_homographies(pairs, matches, config, generator)
+
+
+def turned_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
+                        generator: torch.Generator | None = None) -> dict[tuple[int, int], Tensor]:
+    """The coarse homographies (3, 3) of the view pairs whose second view is turned a quarter,
+    a half or three quarters of a turn against the first (portrait and landscape shots of one
+    set): per pair, the turn whose :func:`coarse_homographies` keeps the most inliers, where it
+    keeps more than the unturned one (and ``min_score`` at least)."""
+    fitted = [coarse_homographies(features, pairs, config, generator, turn) for turn in range(4)]  # (homographies, inliers)
+    found = {}
+    for pair in pairs:
+        best = max(range(4), key=lambda turn: fitted[turn][1][pair])
+        if best != 0 and fitted[best][0][pair] is not None and fitted[best][1][pair] > fitted[0][1][pair]:
+            found[pair] = fitted[best][0][pair]
+    return found
 
 
 def fit_homographies(pairs: list[tuple[int, int]], matches: list[Tensor], config: PairsConfig,

@@ -30,7 +30,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
-from torchsfm.sfm.pairs import bridge_pairs, coarse_features
+from torchsfm.sfm.pairs import bridge_pairs, coarse_features, turned_homographies
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
 from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
@@ -250,9 +250,11 @@ class RematchUnregistered(RetryStage):
 class BridgeWithSift(RetryStage):
     """When views stay out of the model (``pairs.sift_bridge``): the pairs that may link each of
     them to the registered views (:func:`~torchsfm.sfm.pairs.bridge_pairs`) get a homography
-    from SIFT matches (:func:`~torchsfm.sfm.sift.sift_homographies`) in place of the coarse NCC
-    one — a wide baseline (rotations of 40-60 degrees) leaves too few coarse NCC matches to fit
-    it, or fits a false one. Then the thesis' matching as before: NCC + strength measure at the
+    in place of the coarse NCC one — from the coarse NCC matches of the partner's patches turned
+    by quarter turns where that fits one (:func:`~torchsfm.sfm.pairs.turned_homographies`: a
+    portrait shot among landscape ones; such a view needs no SIFT), else from SIFT matches
+    (:func:`~torchsfm.sfm.sift.sift_homographies`): a wide baseline (rotations of 40-60 degrees)
+    leaves too few coarse NCC matches to fit it, or fits a false one. Then the thesis' matching as before: NCC + strength measure at the
     corners, the disc centred on the homography's prediction and the patches warped by it, and
     robust verification, of which only the strongest pair joining two groups of views is kept
     (:func:`joining_pairs`; the groups: the model, the other models, and the left-out views that
@@ -279,8 +281,13 @@ class BridgeWithSift(RetryStage):
             if not candidates:
                 return state
             tried |= set(candidates)
-            state.report(f"{len(stranded)} views left out: SIFT homographies for {len(candidates)} pairs that may link them")
-            homographies = sift_homographies(state.greys, candidates, self.config.pairs, state.generator, described)
+            own = torch.Generator(state.generator.device).manual_seed(state.generator.initial_seed())  # the draws below as without it
+            homographies = turned_homographies(features, candidates, self.config.pairs, own)
+            turned = {v for pair in homographies for v in pair if v in stranded}  # linked already: no SIFT for them
+            unturned = [pair for pair in candidates if not set(pair) & turned]
+            state.report(f"{len(stranded)} views left out: {len(candidates)} pairs may link them, {len(homographies)} of them "
+                         f"with a view turned against the other; SIFT homographies for {len(unturned)}")
+            homographies.update(sift_homographies(state.greys, unturned, self.config.pairs, state.generator, described))
             putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
             groups = [registered, *(other.view_indices for other in state.reconstruction.other_models),
                       *(list(key) for key in state.pairs if not set(key) & set(registered))]  # links among left-out views stand

@@ -2,11 +2,12 @@
 
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
-fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61 degrees apart) and
-0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double size (1536x1024) and with
-views 0 and 4 turned to portrait (each view its own K); the KITTI odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth
-frame of it (about 6, 10 and 12 m apart), its frames shuffled and in reverse (the camera
-backing away); Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
+fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61
+degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
+size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); the KITTI
+odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth frame of
+it (about 6, 10 and 12 m apart), its frames shuffled and in reverse (the camera backing away);
+Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to

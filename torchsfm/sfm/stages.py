@@ -254,8 +254,9 @@ class BridgeWithSift(RetryStage):
     by quarter turns where that fits one (:func:`~torchsfm.sfm.pairs.turned_homographies`: a
     portrait shot among landscape ones; such a view needs no SIFT), else from SIFT matches
     (:func:`~torchsfm.sfm.sift.sift_homographies`): a wide baseline (rotations of 40-60 degrees)
-    leaves too few coarse NCC matches to fit it, or fits a false one. Then the thesis' matching as before: NCC + strength measure at the
-    corners, the disc centred on the homography's prediction and the patches warped by it, and
+    leaves too few coarse NCC matches to fit it, or fits a false one. Then the thesis' matching
+    as before: NCC + strength measure at the corners, the disc centred on the homography's
+    prediction and the patches warped by it, and
     robust verification, of which only the strongest pair joining two groups of views is kept
     (:func:`joining_pairs`; the groups: the model, the other models, and the left-out views that
     verified pairs link); then the epipolar-band rematch (:func:`epipolar_matches`) of the

@@ -120,6 +120,32 @@ def test_a_round_scored_in_blocks_of_problems_gives_the_same_answer(monkeypatch)
     assert torch.equal(whole.num_trials, blocks.num_trials)
 
 
+@pytest.mark.parametrize("local_refits", [0, 1, 3])
+@pytest.mark.parametrize("model_class", [FundamentalModel, HomographyModel])
+def test_the_inlier_mask_is_the_returned_models_mask(model_class, local_refits):
+    """The engine carries each problem's inlier mask with its best model through the rounds and
+    the LO refits instead of scoring the final model again: the mask must be exactly the points
+    under the threshold of the returned model (padding excluded), for a batch whose problems stop
+    after different rounds (10 % and 60 % outliers, one padded)."""
+    scenes = [synthetic_two_view(200, noise=0.5, outlier_ratio=ratio, seed=seed) for seed, ratio in enumerate((0.1, 0.6, 0.4))]
+    data = _data(*scenes)
+    if model_class is HomographyModel:  # a planar scene: the inliers' second image a homography of the first, 0.5 px noise
+        H = torch.tensor([[1.1, 0.05, 20.0], [-0.03, 0.95, -10.0], [1e-4, 5e-5, 1.0]], dtype=torch.float64)
+        moved = torch.cat([data[..., :2], torch.ones_like(data[..., :1])], -1) @ H.T
+        noise = 0.5 * torch.randn(3, 200, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+        inlier = torch.stack([scene.is_inlier for scene in scenes])[..., None]
+        data[..., 2:] = torch.where(inlier, moved[..., :2] / moved[..., 2:] + noise, data[..., 2:])
+    valid = torch.ones(3, 200, dtype=torch.bool)
+    valid[2, 150:] = False
+    data[2, 150:] = 0.0
+    config = dataclasses.replace(RansacConfig(initial_hypotheses=8), local_refits=local_refits)
+    model = model_class(data, valid)
+    result = ransac(model, data, config, valid=valid, generator=torch.Generator().manual_seed(0))
+    assert (result.num_trials[0] < result.num_trials[1]) and result.success.all()
+    residuals = torch.nan_to_num(model.residuals(result.model[:, None], data)[:, 0], nan=float("inf"))
+    assert torch.equal(result.inlier_mask, (residuals < config.inlier_threshold**2) & valid)
+
+
 def test_projective_resection_residuals_of_many_cameras_equal_one_at_a_time():
     """B = 2 problems, H = 5 cameras each scored in one product against each camera written out
     (1e-12 relative); a point on a camera's principal plane (projection at infinity) gets +inf."""

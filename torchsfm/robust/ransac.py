@@ -135,16 +135,16 @@ def ransac(
     subset_sampler = UniformSampler(data, valid) if preemptive else None
 
     def evaluate(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor) -> tuple[Tensor, Tensor]:
+        """Score (P, H) and inlier mask (P, H, N) of hypotheses (P, H, *M) valid (P, H) on their rows."""
         residuals = torch.nan_to_num(model.residuals(models, rows), nan=float("inf"))  # (P, H, N)
         inliers = (residuals < threshold_sq) & rows_valid[:, None, :] & ok[..., None]
-        score = torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf"))
-        return score, inliers.sum(-1)
+        return torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf")), inliers
 
     def score_block(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor, subset: Tensor | None,
-                    block: slice) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                    block: slice) -> tuple[Tensor, Tensor, Tensor]:
         """The ``block`` of a round's P problems, hypotheses (P, H, *M) valid (P, H): with a
-        preemptive (P, m) row subset, the best ``preemptive_keep`` of them on it kept; -> those
-        models (b, H', *M), validity, score and inlier count (b, H') on all their rows."""
+        preemptive (P, m) row subset, the best ``preemptive_keep`` of them on it kept; -> each
+        problem's best of them on all its rows: model (b, *M), score (b,) and inlier mask (b, N)."""
         if block.stop < models.shape[0] or block.start > 0:
             model = model.restricted(torch.arange(models.shape[0], device=device)[block])
         models, ok, rows, rows_valid = models[block], ok[block], rows[block], rows_valid[block]
@@ -155,11 +155,14 @@ def ransac(
             keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
             problem = torch.arange(models.shape[0], device=device)[:, None]
             models, ok = models[problem, keep], ok[problem, keep]
-        return (models, ok, *evaluate(model, models, ok, rows, rows_valid))
+        score, inliers = evaluate(model, models, ok, rows, rows_valid)
+        score, best = score.max(dim=1)
+        problem = torch.arange(models.shape[0], device=device)
+        return models[problem, best], score, inliers[problem, best]
 
     best_model: Tensor | None = None
     best_score = torch.full((B,), float("-inf"), dtype=torch.float64, device=device)
-    best_count = torch.zeros(B, dtype=torch.long, device=device)
+    best_inliers = torch.zeros(B, N, dtype=torch.bool, device=device)
     trials = torch.zeros(B, dtype=torch.long, device=device)
     needed = torch.full((B,), config.max_trials, dtype=torch.long, device=device)
     active = num_valid >= s
@@ -175,7 +178,6 @@ def ransac(
         live = slice(None) if everyone else torch.nonzero(active).flatten()  # (P,) problems
         live_model, live_data, live_valid = (model, data, valid) if everyone else (model.restricted(live), data[live], valid[live])
         P = live_data.shape[0]
-        rows_of = torch.arange(P, device=device)
         indices = sampler.sample(num_samples, s, generator, None if everyone else live)  # (P, K, s)
         samples = torch.gather(live_data[:, None].expand(P, num_samples, N, D), 2, indices[..., None].expand(*indices.shape, D))
         models, ok = live_model.fit_minimal(samples)  # (P, H, *M), (P, H)
@@ -186,40 +188,31 @@ def ransac(
         # batch do not fit in the caches (256 problems in one block ran at half the speed)
         step = max(1, ROUND_ELEMENTS // (models.shape[1] * N))
         blocks = [score_block(live_model, models, ok, live_data, live_valid, subset, slice(a, a + step)) for a in range(0, P, step)]
-        models, ok, score, count = (torch.cat(parts) for parts in zip(*blocks))
-        round_score, round_best = score.max(dim=1)
+        chosen, round_score, chosen_inliers = (torch.cat(parts) for parts in zip(*blocks))
         improved = round_score > best_score[live]  # (P,)
-        chosen = models[rows_of, round_best]
         if best_model is None:  # problems that never draw keep zeros (they have fewer than s rows: no inliers)
             best_model = chosen.new_zeros(B, *chosen.shape[1:])
         current = _where_batch(improved, chosen, best_model[live])
         current_score = torch.where(improved, round_score, best_score[live])
-        current_count = torch.where(improved, count[rows_of, round_best], best_count[live])
+        current_inliers = _where_batch(improved, chosen_inliers, best_inliers[live])
         for _ in range(config.local_refits if bool(improved.any()) else 0):
-            inliers = _inliers(live_model, current, live_data, live_valid, threshold_sq)
-            refit = live_model.fit_weighted(live_data, inliers.to(data.dtype))
-            score, count = evaluate(live_model, refit[:, None], (improved & (current_count >= s))[:, None], live_data, live_valid)
+            refit = live_model.fit_weighted(live_data, current_inliers.to(data.dtype))
+            ok = improved & (current_inliers.sum(-1) >= s)
+            score, inliers = evaluate(live_model, refit[:, None], ok[:, None], live_data, live_valid)
             better = improved & (score[:, 0] >= current_score)
             current = _where_batch(better, refit, current)
             current_score = torch.where(better, score[:, 0], current_score)
-            current_count = torch.where(better, count[:, 0], current_count)
-        best_model[live], best_score[live], best_count[live] = current, current_score.double(), current_count
+            current_inliers = _where_batch(better, inliers[:, 0], current_inliers)
+        best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
         trials[live] += num_samples
-        ratio = best_count.double() / num_valid.clamp_min(1).double()
+        ratio = best_inliers.sum(-1).double() / num_valid.clamp_min(1).double()
         needed = required_trials(ratio, s, config.confidence, config.max_trials)
         active = active & (trials < needed)
 
     if best_model is None:  # no problem had enough valid rows: a placeholder of the right shape
         best_model = model.fit_weighted(data, valid.to(data.dtype))
-    inlier_mask = _inliers(model, best_model, data, valid, threshold_sq)
-    success = inlier_mask.sum(-1) >= s
-    return RansacResult(model=best_model, inlier_mask=inlier_mask, num_trials=trials, success=success)
-
-
-def _inliers(model: RobustModel, models: Tensor, data: Tensor, valid: Tensor, threshold_sq: float) -> Tensor:
-    """(B, N) inlier mask of one model per problem."""
-    residuals = torch.nan_to_num(model.residuals(models[:, None], data)[:, 0], nan=float("inf"))
-    return (residuals < threshold_sq) & valid
+    success = best_inliers.sum(-1) >= s
+    return RansacResult(model=best_model, inlier_mask=best_inliers, num_trials=trials, success=success)
 
 
 def _where_batch(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:

@@ -423,6 +423,39 @@ def test_normalized_cut_is_exact_and_the_direct_cut_recovers_blocks():
     assert misclassification(found, truth) == 0
 
 
+def test_the_sparse_eigensolver_of_large_affinities_matches_the_dense_one(monkeypatch):
+    """A sparse affinity over 1600 tracks (the LOBPCG path): four blocks of random links, each
+    track linked to 24 others, 5 % of the links across blocks. LOBPCG's 20 leading eigenvalues
+    (its answer kept) equal the dense eigh's to 1e-10 and its eigenvectors span the same subspace (cosines 1 - 1e-10);
+    where LOBPCG's residual is refused, the dense eigh decides, bit for bit."""
+    import torchsfm.moving.segmentation as segmentation
+
+    g = torch.Generator().manual_seed(0)
+    N = segmentation.SPARSE_EIGEN_TRACKS + 100
+    block = torch.arange(N) * 4 // N
+    partner = torch.randint(0, N, (N, 24), generator=g)
+    same = block[partner] == block[:, None]
+    keep = same | (torch.rand(N, 24, generator=g) < 0.05)
+    rows = torch.arange(N)[:, None].expand_as(partner)
+    links = torch.zeros(N, N, dtype=torch.float64)
+    links[rows[keep], partner[keep]] = torch.rand(int(keep.sum()), generator=g, dtype=torch.float64) + 0.5
+    affinity = torch.maximum(links, links.T).fill_diagonal_(0)
+
+    solved = []
+    lobpcg = torch.lobpcg
+    monkeypatch.setattr(torch, "lobpcg", lambda *args, **kwargs: solved.append(lobpcg(*args, **kwargs)) or solved[-1])
+    values, vectors = segmentation.leading_eigenvectors(affinity, 20)
+    assert len(solved) == 1 and torch.equal(values, solved[0][0].sort(descending=True).values)  # LOBPCG's answer kept
+    degree = affinity.sum(1).rsqrt()
+    dense_values, dense_vectors = torch.linalg.eigh(affinity * degree[:, None] * degree[None])
+    torch.testing.assert_close(values, dense_values.flip(0)[:20], rtol=0, atol=1e-10)
+    cosines = torch.linalg.svdvals(vectors.T @ dense_vectors.flip(1)[:, :20])
+    torch.testing.assert_close(cosines, torch.ones(20, dtype=torch.float64), rtol=0, atol=1e-10)
+    monkeypatch.setattr(segmentation, "EIGEN_RESIDUAL", 0.0)
+    fallback_values, fallback_vectors = segmentation.leading_eigenvectors(affinity, 20)
+    assert torch.equal(fallback_values, dense_values.flip(0)[:20]) and torch.equal(fallback_vectors, dense_vectors.flip(1)[:, :20])
+
+
 def test_a_piece_is_a_body_only_when_its_own_motion_explains_it_to_noise():
     """The scene and an object at 0.5 px noise are each explained by a rigid motion of their own
     within the χ² bound of 1 px noise; 40 tracks drawn at random in every frame (tracking

@@ -84,6 +84,8 @@ COVERAGE_GRID = 8
 CHUNK_ELEMENTS = 2**22  # numbers per hypothesis chunk: memory bounded for thousands of tracks
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
 BLOCK_ELEMENTS = 2**15  # tracks × set-and-pair problems fitted at a time (see ``track_residuals``)
+SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
+EIGEN_RESIDUAL = 1e-6  # largest LOBPCG residual accepted: it stops near 1e-8 (sqrt of float64 eps); a stalled run is far off
 
 
 @dataclass
@@ -666,11 +668,27 @@ def strongest_links(similarity: Tensor, links: int) -> Tensor:
 
 def leading_eigenvectors(affinity: Tensor, count: int) -> tuple[Tensor, Tensor]:
     """The ``count`` largest eigenvalues (descending) and eigenvectors (N, count) of the
-    normalized affinity D^-1/2 A D^-1/2."""
+    normalized affinity D^-1/2 A D^-1/2.
+
+    From ``SPARSE_EIGEN_TRACKS`` tracks on, by LOBPCG on the sparse matrix (each row keeps about
+    2 × ``links`` entries; a fixed-seed start, so the result is reproducible), kept where every
+    pair's residual ‖M v − λ v‖ is at most ``EIGEN_RESIDUAL`` (M's norm is at most 1), else by the
+    dense ``eigh``. On a 3000-track video's affinity both give the eigenvalues to 1e-14 and the
+    subspace to 1e-13 (residuals near 1e-8), in 0.7 s instead of 3.4 s."""
     degree = affinity.sum(1).clamp_min(torch.finfo(affinity.dtype).tiny)
     scale = degree.rsqrt()
-    values, vectors = torch.linalg.eigh(affinity * scale[:, None] * scale[None])
-    count = min(count, values.numel())
+    normalized = affinity * scale[:, None] * scale[None]
+    N = normalized.shape[0]
+    count = min(count, N)
+    if N >= SPARSE_EIGEN_TRACKS and 3 * count <= N:
+        start = torch.randn(N, count, generator=torch.Generator(normalized.device).manual_seed(0), dtype=normalized.dtype,
+                            device=normalized.device)
+        values, vectors = torch.lobpcg(normalized.to_sparse(), k=count, X=start, largest=True)
+        values, order = values.sort(descending=True)
+        vectors = vectors[:, order]
+        if float((normalized @ vectors - vectors * values).norm(dim=0).max()) <= EIGEN_RESIDUAL:
+            return values, vectors
+    values, vectors = torch.linalg.eigh(normalized)
     return values.flip(0)[:count], vectors.flip(1)[:, :count]
 
 

@@ -69,8 +69,9 @@ from torch import Tensor
 
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
-from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error, sampson_error_of_hypotheses
-from torchsfm.geometry.homography import homography_dlt, transfer_error, transfer_error_of_hypotheses
+from torchsfm.camera import map_by_each
+from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
+from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.static_tracks import rms_bound, rigid_group
@@ -159,7 +160,8 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         fits = [MODELS[name](tracks[:, index], visible[:, index], config.hypotheses // len(kinds), config, generator, similarity)
                 for name in kinds]
         preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
-        similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1))
+        similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1),
+                                         tracks.dtype)
     explained = explained_tracks(similarity, config)
     if int(explained.sum()) < MIN_VECTORS:
         raise NotEnoughDataError(f"only {int(explained.sum())} tracks fit any rigid motion (needs {MIN_VECTORS})")
@@ -540,38 +542,39 @@ def fundamental_residuals(tracks: Tensor, visible: Tensor, count: int, config: S
     def fit(x1: Tensor, x2: Tensor) -> Tensor:
         return eight_point_minimal(x1[:, None], x2[:, None], hartley_normalize(x1)[1], hartley_normalize(x2)[1])[:, 0]
 
-    return worst_over_pairs(tracks, visible, frames, sample, usable, fit,
-                            lambda F, x1, x2: sampson_error_of_hypotheses(F[None], x1[None], x2[None])[0])
+    return worst_over_pairs(tracks, visible, frames, sample, usable, fit, sampson_to_each)
 
 
 def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Tensor, usable: Tensor,
                      fit: Callable[[Tensor, Tensor], Tensor], distance: Callable[[Tensor, Tensor, Tensor], Tensor]
                      ) -> tuple[Tensor, Tensor]:
     """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
-    (H, 3, 3) models, ``distance`` (models (h, 3, 3), points (N, 2), (N, 2)) -> (h, N) (pixels,
-    or any increasing function of them).
+    (H, 3, 3) models, ``distance`` (h models (h, 3, 3), the points (N, 2) of their first frame,
+    each model's second frame's points (N, h, 2)) -> (N, h) (pixels, or any increasing function
+    of them).
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
-    sample's tracks. The models of all hypotheses sharing a frame pair are scored together on
-    that pair's points (no per-hypothesis copy of the tracks), each into its own row of an
-    (H · P, N) table (P = m(m - 1)/2 pairs); the largest over a hypothesis' P rows is taken once
-    at the end."""
+    sample's tracks. The models of all hypotheses sharing a pair's first frame are scored
+    together on its points (one product for all; a video has up to F²/2 frame pairs but F first
+    frames), each into its own row of an (H · P, N) table (P = m(m - 1)/2 pairs); the largest
+    over a hypothesis' P rows is taken once at the end."""
     H, m = frames.shape
-    N, F = tracks.shape[1], tracks.shape[0]
+    N = tracks.shape[1]
     first, second = torch.triu_indices(m, m, 1, device=frames.device)
     a, b = frames[:, first], frames[:, second]  # (H, P) frame pairs of every hypothesis
     P = a.shape[1]
     models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(P)], 1).reshape(-1, 3, 3)
     per_pair = tracks.new_empty(H * P, N)  # row h * P + p: hypothesis h on its pair p, 0 where the track is not seen in it
-    key = (a * F + b).reshape(-1)  # (H * P,), one hypothesis never holds a pair twice
-    order = key.argsort()
-    keys, counts = key[order].unique_consecutive(return_counts=True)
+    starts, ends = a.reshape(-1), b.reshape(-1)  # (H * P,)
+    order = starts.argsort()
+    firsts, counts = starts[order].unique_consecutive(return_counts=True)
+    by_track, seen_by_track = tracks.transpose(0, 1), visible.T  # (N, F, 2), (N, F)
     chunk = max(1, CHUNK_ELEMENTS // N)
-    for pair, rows in zip(keys.tolist(), order.split(counts.tolist())):
-        i, j = divmod(pair, F)
-        both = visible[i] & visible[j]
+    for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
         for part in rows.split(chunk):
-            per_pair[part] = torch.where(both, distance(models[part], tracks[i], tracks[j]), 0.0)
+            second = ends[part]
+            both = visible[i, :, None] & seen_by_track[:, second]  # (N, h)
+            per_pair[part] = torch.where(both, distance(models[part], tracks[i], by_track[:, second]), 0.0).T
     worst = per_pair.view(H, P, N).amax(1)  # residuals are >= 0 (or NaN)
     seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
     defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
@@ -616,15 +619,15 @@ def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: Segmen
 
 
 def ordered_preferences(residuals: Tensor, defined: Tensor, config: SegmentationConfig) -> tuple[Tensor, Tensor]:
-    """(H, N) residuals -> (N, H) preferences, each track preferring the ``preference_share`` of
-    its defined hypotheses with the smallest residuals (ordered-residual kernel), and the (N, H)
-    float mask of defined entries."""
+    """(H, N) residuals -> (N, H) bool preferences, each track preferring the ``preference_share``
+    of its defined hypotheses with the smallest residuals (ordered-residual kernel), and the
+    (N, H) bool mask of defined entries."""
     masked = torch.where(defined, residuals, torch.inf).T.contiguous()  # (N, H)
     defined = defined.T
     keep = (defined.sum(1) * config.preference_share).ceil().long().clamp_min(1)  # (N,)
     smallest = masked.topk(int(keep.max()), dim=1, largest=False).values  # (N, k) ascending
     largest_kept = smallest.gather(1, keep[:, None] - 1)  # the keep-th smallest of each track
-    return ((masked <= largest_kept) & defined).to(residuals.dtype), defined.to(residuals.dtype)
+    return (masked <= largest_kept) & defined, defined
 
 
 def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
@@ -639,23 +642,29 @@ def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
     return support > config.outlier_factor * chance
 
 
-def tanimoto_similarity(preference: Tensor, mask: Tensor) -> Tensor:
-    """(N, H) preferences and defined mask -> (N, N) Tanimoto similarity over the hypotheses
-    defined for both tracks (zero diagonal)."""
+def tanimoto_similarity(preference: Tensor, mask: Tensor, dtype: torch.dtype) -> Tensor:
+    """(N, H) bool preferences and defined mask -> (N, N) Tanimoto similarity (``dtype``) over
+    the hypotheses defined for both tracks (zero diagonal)."""
+    preference, mask = binary_operand(preference), binary_operand(mask)  # each converted once
     inner = binary_products(preference, preference)
     own = binary_products(preference, mask)  # |p_i| restricted to the hypotheses defined for j
     denominator = own + own.T - inner
-    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(1.0), 0.0).to(preference.dtype)
+    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(1.0), 0.0).to(dtype)
     return similarity.fill_diagonal_(0.0)
 
 
+def binary_operand(x: Tensor) -> Tensor:
+    """A 0/1 matrix in the dtype :func:`binary_products` multiplies: int8 on the CPU (int32 sums,
+    ``torch._int_mm``: 5x faster than float32 on a CPU with VNNI), float32 elsewhere."""
+    return x.to(torch.int8 if x.device.type == "cpu" else torch.float32)
+
+
 def binary_products(a: Tensor, b: Tensor) -> Tensor:
-    """(n, h) and (m, h) 0/1 matrices -> (n, m) float32 counts a @ b.T, exact (up to 2^24). On
-    the CPU in int8 with int32 sums (``torch._int_mm``: 5x faster than float32 on a CPU with
-    VNNI); elsewhere in float32."""
-    if a.device.type == "cpu":
-        return torch._int_mm(a.to(torch.int8), b.to(torch.int8).T).float()
-    return a.float() @ b.float().T
+    """(n, h) and (m, h) 0/1 matrices from :func:`binary_operand` -> (n, m) float32 counts
+    a @ b.T, exact (up to 2^24)."""
+    if a.dtype == torch.int8:
+        return torch._int_mm(a, b.T).float()
+    return a @ b.T
 
 
 def strongest_links(similarity: Tensor, links: int) -> Tensor:
@@ -718,7 +727,29 @@ def homography_residuals(tracks: Tensor, visible: Tensor, count: int, config: Se
     A plane is a local model: it separates a body from the scene around it even where their
     epipolar geometry agrees (a car driving along the camera's direction). -> (H, N), (H, N) bool."""
     frames, sample, usable = sample_hypotheses(tracks, visible, count, config.sample_frames, 4, config, generator, guide)
-    return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography, transfer_error_of_hypotheses)
+    return worst_over_pairs(tracks, visible, frames, sample, usable, four_point_homography, transfer_to_each)
+
+
+def sampson_to_each(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Squared Sampson distances (N, h) of h fundamental matrices F (h, 3, 3), each between the
+    points x1 (N, 2) and its own second points x2 (N, h, 2): the epipolar lines F x1 as one
+    (N, 3) x (3, 3h) product, the rest element by element."""
+    lines = map_by_each(F, x1)  # (N, h, 3)
+    u, v = x2[..., 0], x2[..., 1]
+    algebraic = lines[..., 0] * u + lines[..., 1] * v + lines[..., 2]
+    back_u = F[:, 0, 0] * u + F[:, 1, 0] * v + F[:, 2, 0]  # (Fᵀ x2) rows 0 and 1
+    back_v = F[:, 0, 1] * u + F[:, 1, 1] * v + F[:, 2, 1]
+    gradient = lines[..., 0].square() + lines[..., 1].square() + back_u.square() + back_v.square()
+    return algebraic.square() / gradient.clamp_min(1e-30)
+
+
+def transfer_to_each(G: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Squared transfer distances (N, h) of h homographies G (h, 3, 3), each mapping the points
+    x1 (N, 2) onto its own second points x2 (N, h, 2); +inf where a point maps to infinity."""
+    mapped = map_by_each(G, x1)  # (N, h, 3)
+    w = mapped[..., 2]
+    error = (mapped[..., 0] / w - x2[..., 0]).square_() + (mapped[..., 1] / w - x2[..., 1]).square_()
+    return torch.where(w.abs() > 1e-12, error, torch.inf)
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

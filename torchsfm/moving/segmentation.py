@@ -67,9 +67,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchsfm.camera import to_homogeneous
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
-from torchsfm.camera import map_by_each
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
@@ -550,8 +550,8 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
                      ) -> tuple[Tensor, Tensor]:
     """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
     (H, 3, 3) models, ``distance`` (h models (h, 3, 3), the points (N, 2) of their first frame,
-    each model's second frame's points (N, h, 2)) -> (N, h) (pixels, or any increasing function
-    of them).
+    each model's second frame's points (2, N, h), the coordinates apart) -> (N, h) (pixels, or
+    any increasing function of them).
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
     sample's tracks. The models of all hypotheses sharing a pair's first frame are scored
@@ -568,13 +568,13 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     starts, ends = a.reshape(-1), b.reshape(-1)  # (H * P,)
     order = starts.argsort()
     firsts, counts = starts[order].unique_consecutive(return_counts=True)
-    by_track, seen_by_track = tracks.transpose(0, 1), visible.T  # (N, F, 2), (N, F)
+    coordinates, seen_by_track = tracks.permute(2, 1, 0).contiguous(), visible.T  # (2, N, F), (N, F)
     chunk = max(1, CHUNK_ELEMENTS // N)
     for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
         for part in rows.split(chunk):
             second = ends[part]
-            both = visible[i, :, None] & seen_by_track[:, second]  # (N, h)
-            per_pair[part] = torch.where(both, distance(models[part], tracks[i], by_track[:, second]), 0.0).T
+            unseen = ~(visible[i, :, None] & seen_by_track[:, second])  # (N, h)
+            per_pair[part] = distance(models[part], tracks[i], coordinates[:, :, second]).masked_fill_(unseen, 0.0).T
     worst = per_pair.view(H, P, N).amax(1)  # residuals are >= 0 (or NaN)
     seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
     defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
@@ -732,24 +732,42 @@ def homography_residuals(tracks: Tensor, visible: Tensor, count: int, config: Se
 
 def sampson_to_each(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     """Squared Sampson distances (N, h) of h fundamental matrices F (h, 3, 3), each between the
-    points x1 (N, 2) and its own second points x2 (N, h, 2): the epipolar lines F x1 as one
-    (N, 3) x (3, 3h) product, the rest element by element."""
-    lines = map_by_each(F, x1)  # (N, h, 3)
-    u, v = x2[..., 0], x2[..., 1]
-    algebraic = lines[..., 0] * u + lines[..., 1] * v + lines[..., 2]
-    back_u = F[:, 0, 0] * u + F[:, 1, 0] * v + F[:, 2, 0]  # (Fᵀ x2) rows 0 and 1
-    back_v = F[:, 0, 1] * u + F[:, 1, 1] * v + F[:, 2, 1]
-    gradient = lines[..., 0].square() + lines[..., 1].square() + back_u.square() + back_v.square()
-    return algebraic.square() / gradient.clamp_min(1e-30)
+    points x1 (N, 2) and its own second points x2 (2, N, h) (the coordinates apart): the
+    epipolar lines F x1 as one (N, 3) x (3, 3h) product, the rest element by element."""
+    lines = images_by_each(F, x1)  # (N, 3, h)
+    u, v = x2
+    algebraic = lines[:, 0] * u
+    algebraic += lines[:, 1] * v
+    algebraic += lines[:, 2]
+    back_u = F[:, 0, 0] * u  # (Fᵀ x2) rows 0 and 1
+    back_u += F[:, 1, 0] * v
+    back_u += F[:, 2, 0]
+    back_v = F[:, 0, 1] * u
+    back_v += F[:, 1, 1] * v
+    back_v += F[:, 2, 1]
+    gradient = lines[:, 0].square()
+    gradient += lines[:, 1].square()
+    gradient += back_u.square_()
+    gradient += back_v.square_()
+    return algebraic.square_().div_(gradient.clamp_min_(1e-30))
 
 
 def transfer_to_each(G: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     """Squared transfer distances (N, h) of h homographies G (h, 3, 3), each mapping the points
-    x1 (N, 2) onto its own second points x2 (N, h, 2); +inf where a point maps to infinity."""
-    mapped = map_by_each(G, x1)  # (N, h, 3)
-    w = mapped[..., 2]
-    error = (mapped[..., 0] / w - x2[..., 0]).square_() + (mapped[..., 1] / w - x2[..., 1]).square_()
+    x1 (N, 2) onto its own second points x2 (2, N, h) (the coordinates apart); +inf where a
+    point maps to infinity."""
+    mapped = images_by_each(G, x1)  # (N, 3, h)
+    w = mapped[:, 2]
+    error = (mapped[:, 0] / w - x2[0]).square_()
+    error += (mapped[:, 1] / w - x2[1]).square_()
     return torch.where(w.abs() > 1e-12, error, torch.inf)
+
+
+def images_by_each(M: Tensor, x: Tensor) -> Tensor:
+    """Homogeneous images (N, 3, h) of the points x (N, 2) under each of h matrices M (h, 3, 3),
+    as one (N, 3) x (3, 3h) product: entry (n, k, r) is row k of M_r applied to x_n."""
+    h = M.shape[0]
+    return (to_homogeneous(x) @ M.permute(2, 1, 0).reshape(3, 3 * h)).view(-1, 3, h)
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

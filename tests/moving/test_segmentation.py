@@ -368,8 +368,8 @@ def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs():
         models[3, 0, 0] = float("nan")
         return models
 
-    def distance(models, x1, x2):  # (h, 3, 3), (N, 2), (2, N, h) -> (N, h)
-        return (x1[None] @ models[:, :2, :2].transpose(-1, -2) + models[:, None, :2, 2] - x2.permute(2, 1, 0)).square().sum(-1).T
+    def distance(models, x1, x2):  # (h, 3, 3), (N, 2), (2, h, N) -> (h, N)
+        return (x1[None] @ models[:, :2, :2].transpose(-1, -2) + models[:, None, :2, 2] - x2.permute(1, 2, 0)).square().sum(-1)
 
     worst, defined = worst_over_pairs(tracks, visible, frames, sample, usable, fit, distance)
     expected = torch.zeros(H, N, dtype=torch.float64)
@@ -378,7 +378,7 @@ def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs():
         for p, q in ((0, 1), (0, 2), (1, 2)):
             i, j = int(frames[h, p]), int(frames[h, q])
             model = fit(tracks[i][sample], tracks[j][sample])[h]
-            residual = distance(model[None], tracks[i], tracks[j].T[..., None])[:, 0]
+            residual = distance(model[None], tracks[i], tracks[j].T[:, None])[0]
             both = visible[i] & visible[j]
             expected[h] = torch.where(both, torch.maximum(expected[h], residual), expected[h])
             seen[h] |= both
@@ -400,13 +400,13 @@ def test_distances_to_each_models_second_frame_equal_the_shared_frame_ones():
     g = torch.Generator().manual_seed(6)
     x1, x2 = 640 * torch.rand(2, 50, 2, generator=g, dtype=torch.float64)
     models = torch.randn(7, 3, 3, generator=g, dtype=torch.float64)
-    shared = x2.T[..., None].expand(-1, -1, 7)  # (2, N, h): the coordinates apart
-    torch.testing.assert_close(sampson_to_each(models, x1, shared).T, sampson_error_of_hypotheses(models[None], x1[None], x2[None])[0],
+    shared = x2.T[:, None].expand(-1, 7, -1)  # (2, h, N): the coordinates apart
+    torch.testing.assert_close(sampson_to_each(models, x1, shared), sampson_error_of_hypotheses(models[None], x1[None], x2[None])[0],
                                rtol=1e-9, atol=0)
-    torch.testing.assert_close(transfer_to_each(models, x1, shared).T, transfer_error_of_hypotheses(models, x1, x2), rtol=1e-9, atol=0)
-    own = 640 * torch.rand(2, 50, 7, generator=g, dtype=torch.float64)  # a second frame per model: column k against model k alone
+    torch.testing.assert_close(transfer_to_each(models, x1, shared), transfer_error_of_hypotheses(models, x1, x2), rtol=1e-9, atol=0)
+    own = 640 * torch.rand(2, 7, 50, generator=g, dtype=torch.float64)  # a second frame per model: row k against model k alone
     for k in range(7):
-        torch.testing.assert_close(sampson_to_each(models, x1, own)[:, k], sampson_to_each(models[k:k + 1], x1, own[..., k:k + 1])[:, 0],
+        torch.testing.assert_close(sampson_to_each(models, x1, own)[k], sampson_to_each(models[k:k + 1], x1, own[:, k:k + 1])[0],
                                    rtol=1e-12, atol=0)
     at_infinity = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [1 / 320, 0, -1]]], dtype=torch.float64)  # w = 0 at x = 320
     assert transfer_to_each(at_infinity, torch.tensor([[320.0, 5.0]], dtype=torch.float64), own[:, :1, :1]).isinf().all()

@@ -550,7 +550,7 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
                      ) -> tuple[Tensor, Tensor]:
     """Two-view models of H samples over every pair of their m frames: ``fit`` (H, s, 2) x2 ->
     (H, 3, 3) models, ``distance`` (h models (h, 3, 3), the points (N, 2) of their first frame,
-    each model's second frame's points (2, N, h), the coordinates apart) -> (N, h) (pixels, or
+    each model's second frame's points (2, h, N), the coordinates apart) -> (h, N) (pixels, or
     any increasing function of them).
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
@@ -568,13 +568,13 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     starts, ends = a.reshape(-1), b.reshape(-1)  # (H * P,)
     order = starts.argsort()
     firsts, counts = starts[order].unique_consecutive(return_counts=True)
-    coordinates, seen_by_track = tracks.permute(2, 1, 0).contiguous(), visible.T  # (2, N, F), (N, F)
+    coordinates = tracks.permute(2, 0, 1).contiguous()  # (2, F, N)
     chunk = max(1, CHUNK_ELEMENTS // N)
     for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
         for part in rows.split(chunk):
             second = ends[part]
-            unseen = ~(visible[i, :, None] & seen_by_track[:, second])  # (N, h)
-            per_pair[part] = distance(models[part], tracks[i], coordinates[:, :, second]).masked_fill_(unseen, 0.0).T
+            unseen = ~(visible[i] & visible[second])  # (h, N)
+            per_pair[part] = distance(models[part], tracks[i], coordinates[:, second]).masked_fill_(unseen, 0.0)
     worst = per_pair.view(H, P, N).amax(1)  # residuals are >= 0 (or NaN)
     seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
     defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
@@ -731,43 +731,44 @@ def homography_residuals(tracks: Tensor, visible: Tensor, count: int, config: Se
 
 
 def sampson_to_each(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """Squared Sampson distances (N, h) of h fundamental matrices F (h, 3, 3), each between the
-    points x1 (N, 2) and its own second points x2 (2, N, h) (the coordinates apart): the
-    epipolar lines F x1 as one (N, 3) x (3, 3h) product, the rest element by element."""
-    lines = images_by_each(F, x1)  # (N, 3, h)
+    """Squared Sampson distances (h, N) of h fundamental matrices F (h, 3, 3), each between the
+    points x1 (N, 2) and its own second points x2 (2, h, N) (the coordinates apart): the
+    epipolar lines F x1 as one (3h, 3) x (3, N) product, the rest element by element."""
+    lines = images_by_each(F, x1)  # (3, h, N)
     u, v = x2
-    algebraic = lines[:, 0] * u
-    algebraic += lines[:, 1] * v
-    algebraic += lines[:, 2]
-    back_u = F[:, 0, 0] * u  # (Fᵀ x2) rows 0 and 1
-    back_u += F[:, 1, 0] * v
-    back_u += F[:, 2, 0]
-    back_v = F[:, 0, 1] * u
-    back_v += F[:, 1, 1] * v
-    back_v += F[:, 2, 1]
-    gradient = lines[:, 0].square()
-    gradient += lines[:, 1].square()
+    algebraic = lines[0] * u
+    algebraic += lines[1] * v
+    algebraic += lines[2]
+    entry = F[..., None]  # (h, 3, 3, 1): one entry of each model against its row of points
+    back_u = entry[:, 0, 0] * u  # (Fᵀ x2) rows 0 and 1
+    back_u += entry[:, 1, 0] * v
+    back_u += entry[:, 2, 0]
+    back_v = entry[:, 0, 1] * u
+    back_v += entry[:, 1, 1] * v
+    back_v += entry[:, 2, 1]
+    gradient = lines[0].square()
+    gradient += lines[1].square()
     gradient += back_u.square_()
     gradient += back_v.square_()
     return algebraic.square_().div_(gradient.clamp_min_(1e-30))
 
 
 def transfer_to_each(G: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
-    """Squared transfer distances (N, h) of h homographies G (h, 3, 3), each mapping the points
-    x1 (N, 2) onto its own second points x2 (2, N, h) (the coordinates apart); +inf where a
+    """Squared transfer distances (h, N) of h homographies G (h, 3, 3), each mapping the points
+    x1 (N, 2) onto its own second points x2 (2, h, N) (the coordinates apart); +inf where a
     point maps to infinity."""
-    mapped = images_by_each(G, x1)  # (N, 3, h)
-    w = mapped[:, 2]
-    error = (mapped[:, 0] / w - x2[0]).square_()
-    error += (mapped[:, 1] / w - x2[1]).square_()
+    mapped = images_by_each(G, x1)  # (3, h, N)
+    w = mapped[2]
+    error = (mapped[0] / w - x2[0]).square_()
+    error += (mapped[1] / w - x2[1]).square_()
     return torch.where(w.abs() > 1e-12, error, torch.inf)
 
 
 def images_by_each(M: Tensor, x: Tensor) -> Tensor:
-    """Homogeneous images (N, 3, h) of the points x (N, 2) under each of h matrices M (h, 3, 3),
-    as one (N, 3) x (3, 3h) product: entry (n, k, r) is row k of M_r applied to x_n."""
+    """Homogeneous images (3, h, N) of the points x (N, 2) under each of h matrices M (h, 3, 3),
+    as one (3h, 3) x (3, N) product: entry (k, r, n) is row k of M_r applied to x_n."""
     h = M.shape[0]
-    return (to_homogeneous(x) @ M.permute(2, 1, 0).reshape(3, 3 * h)).view(-1, 3, h)
+    return (M.transpose(0, 1).reshape(3 * h, 3) @ to_homogeneous(x).T).view(3, h, -1)
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

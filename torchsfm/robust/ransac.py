@@ -148,16 +148,15 @@ def ransac(
         if block.stop < models.shape[0] or block.start > 0:
             model = model.restricted(torch.arange(models.shape[0], device=device)[block])
         models, ok, rows, rows_valid = models[block], ok[block], rows[block], rows_valid[block]
+        problem = torch.arange(models.shape[0], device=device)
         if subset is not None:
             subset = subset[block]
             partial, _ = evaluate(model, models, ok, torch.gather(rows, 1, subset[..., None].expand(*subset.shape, D)),
                                   torch.gather(rows_valid, 1, subset))
             keep = torch.topk(partial, max(1, math.ceil(config.preemptive_keep * models.shape[1])), dim=1).indices
-            problem = torch.arange(models.shape[0], device=device)[:, None]
-            models, ok = models[problem, keep], ok[problem, keep]
+            models, ok = models[problem[:, None], keep], ok[problem[:, None], keep]
         score, inliers = evaluate(model, models, ok, rows, rows_valid)
         score, best = score.max(dim=1)
-        problem = torch.arange(models.shape[0], device=device)
         return models[problem, best], score, inliers[problem, best]
 
     best_model: Tensor | None = None

@@ -346,11 +346,16 @@ def test_track_residuals_do_not_depend_on_how_many_pairs_are_fitted_at_once(mode
     torch.testing.assert_close(one[judged_one], whole[judged_whole], rtol=0, atol=1e-9)
 
 
-def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs():
+@pytest.mark.parametrize("chunk_elements", [2**21, 200])
+def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements, monkeypatch):
     """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,
     against the definition written as loops: tracks with visibility gaps, hypotheses sharing
-    frame pairs, one unusable sample and one model that is not finite; exact."""
+    frame pairs, one unusable sample and one model that is not finite; exact, scored in one
+    block and in blocks of 2 hypotheses (200 // (3 pairs x 30 tracks))."""
+    from torchsfm.moving import segmentation
     from torchsfm.moving.segmentation import worst_over_pairs
+
+    monkeypatch.setattr(segmentation, "CHUNK_ELEMENTS", chunk_elements)
 
     g = torch.Generator().manual_seed(5)
     F, N, H = 6, 30, 9

@@ -82,7 +82,8 @@ from torchsfm.robust.samplers import draws_without_replacement, resolve_generato
 
 SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
-CHUNK_ELEMENTS = 2**22  # numbers per hypothesis chunk: memory bounded for thousands of tracks
+CHUNK_ELEMENTS = 2**21  # numbers per hypothesis chunk: memory bounded for thousands of tracks; 16 MB of float64,
+# under glibc's 32 MB ceiling for serving freed blocks again instead of fresh (page-faulting) maps
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
 BLOCK_ELEMENTS = 2**15  # tracks × set-and-pair problems fitted at a time (see ``track_residuals``)
 SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
@@ -554,28 +555,31 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     any increasing function of them).
     Returns each track's largest distance over the pairs in which it is seen (H, N), and where
     that is defined (H, N): seen in a pair, a usable sample, a finite model, and not one of the
-    sample's tracks. The models of all hypotheses sharing a pair's first frame are scored
-    together on its points (one product for all; a video has up to F²/2 frame pairs but F first
-    frames), each into its own row of an (H · P, N) table (P = m(m - 1)/2 pairs); the largest
-    over a hypothesis' P rows is taken once at the end."""
+    sample's tracks. In blocks of hypotheses whose (h · P, N) table of distances fits
+    ``CHUNK_ELEMENTS`` (P = m(m - 1)/2 pairs), the models of a block's hypotheses sharing a
+    pair's first frame are scored together on its points (one product for all; a video has up
+    to F²/2 frame pairs but F first frames), each into its own row of the table; the largest over
+    a hypothesis' P rows is taken per block."""
     H, m = frames.shape
     N = tracks.shape[1]
     first, second = torch.triu_indices(m, m, 1, device=frames.device)
     a, b = frames[:, first], frames[:, second]  # (H, P) frame pairs of every hypothesis
     P = a.shape[1]
     models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(P)], 1).reshape(-1, 3, 3)
-    per_pair = tracks.new_empty(H * P, N)  # row h * P + p: hypothesis h on its pair p, 0 where the track is not seen in it
-    starts, ends = a.reshape(-1), b.reshape(-1)  # (H * P,)
-    order = starts.argsort()
-    firsts, counts = starts[order].unique_consecutive(return_counts=True)
     coordinates = tracks.permute(2, 0, 1).contiguous()  # (2, F, N)
-    chunk = max(1, CHUNK_ELEMENTS // N)
-    for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
-        for part in rows.split(chunk):
-            second = ends[part]
+    worst = tracks.new_empty(H, N)
+    block = max(1, CHUNK_ELEMENTS // (P * N))
+    for start in range(0, H, block):
+        part = slice(start * P, min(H, start + block) * P)  # row h * P + p: hypothesis h on its pair p
+        starts, ends, block_models = a.reshape(-1)[part], b.reshape(-1)[part], models[part]
+        per_pair = tracks.new_empty(starts.numel(), N)  # 0 where the track is not seen in the pair
+        order = starts.argsort()
+        firsts, counts = starts[order].unique_consecutive(return_counts=True)
+        for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
+            second = ends[rows]
             unseen = ~(visible[i] & visible[second])  # (h, N)
-            per_pair[part] = distance(models[part], tracks[i], coordinates[:, second]).masked_fill_(unseen, 0.0)
-    worst = per_pair.view(H, P, N).amax(1)  # residuals are >= 0 (or NaN)
+            per_pair[rows] = distance(block_models[rows], tracks[i], coordinates[:, second]).masked_fill_(unseen, 0.0)
+        worst[start:start + block] = per_pair.view(-1, P, N).amax(1)  # residuals are >= 0 (or NaN)
     seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
     defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
     return worst, defined.scatter(1, sample, False)
@@ -611,8 +615,8 @@ def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: Segmen
         part = slice(first, first + chunk)
         offset_norm = select[part] @ squares - 2 * origin_full[part] @ trajectories + origin_norm[part]
         axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
-        projection = (axes.reshape(-1, 2 * F) @ trajectories).reshape(-1, 3, N) - origin_in_basis[part, :, None]
-        residual[part] = (offset_norm - projection.square().sum(1)).clamp_min(0) / m
+        projection = (axes.reshape(-1, 2 * F) @ trajectories).view(-1, 3, N).sub_(origin_in_basis[part, :, None])
+        residual[part] = (offset_norm - projection.square_().sum(1)).clamp_min(0) / m
     seen = visible[frames].all(1)
     defined = seen & (usable & (extent > 1.0))[:, None]
     return residual, defined.scatter(1, sample, False)

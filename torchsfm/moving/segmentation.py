@@ -517,9 +517,9 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
         drawn = draws_without_replacement(weight + 1e-30, size - 1, generator)
         sample = torch.cat([seeds[:, None], drawn], 1)
         return frames, sample, seen_in_all.gather(1, sample).all(1)
-    start = tracks[frames[:, 0]]  # (H, N, 2)
-    distance = (start - start[rows, seeds][:, None]).norm(dim=-1)
-    key = torch.where(local[:, None], distance, torch.rand(H, N, generator=generator, dtype=tracks.dtype, device=device))
+    key = torch.rand(H, N, generator=generator, dtype=tracks.dtype, device=device)
+    start = tracks[frames[local, 0]]  # (h, N, 2) the first frames of the local samples
+    key[local] = (start - start[torch.arange(start.shape[0], device=device), seeds[local]][:, None]).norm(dim=-1)
     key = torch.where(seen_in_all, key, torch.inf)
     key[rows, seeds] = -1.0  # the seed comes first
     pool = min(config.neighbours, N)

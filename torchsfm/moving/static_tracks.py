@@ -14,7 +14,8 @@ calibration is needed, and tracks may have gaps.
    P_r = [I | 0], P_f* = [[e']x F | e'] and linear triangulation.
 3. Every frame's camera by RANSAC on the 6-point projective DLT over the seed's points it sees
    (one batched call over all frames).
-4. Alternation (``refinements`` times): triangulate every track from all its frames
+4. Alternation (at most ``refinements`` times; it stops once the core repeats and σ² moved by
+   at most ``SETTLED`` of itself, a fixed point): triangulate every track from all its frames
    (reweighted linear triangulation, i.e. the reprojection error), keep as the group's core the
    tracks whose reprojection sum of squares is within the χ²(2m − 3) quantile of
    ``significance`` (σ estimated from the core, m the frames a track is seen in), and re-fit
@@ -49,6 +50,7 @@ from torchsfm.robust.models import FundamentalModel, ProjectiveResectionModel
 from torchsfm.robust.ransac import ransac
 
 DEPTH_FLOOR = 0.1  # of a camera's median |p3ᵀX|: a point near its focal plane weighs at most 100× the median
+SETTLED = 1e-3  # relative change of σ² below which, with the core repeated, the alternation has converged
 
 
 @dataclass
@@ -116,7 +118,7 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         members: (N,) bool, the tracks the group is looked for among.
         fundamental_ransac: RANSAC of the starting pair's F (threshold: Sampson distance, px).
         resection_ransac: RANSAC of every frame's camera (threshold: reprojection error, px).
-        refinements: camera / point alternations.
+        refinements: camera / point alternations at most (fewer once they converge, step 4).
         threshold: RMS reprojection error (px) up to which a track belongs to the group while
             the cameras are refined.
         generator: random source of the RANSACs.
@@ -155,6 +157,7 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     index = torch.nonzero(members).flatten()
     x_members, visible_members, core = x[:, index], visible[:, index], group[index]
     M = index.numel()
+    sigma_sq = math.nan
     for step in range(refinements + 1):
         observed = visible_members & camera_valid[:, None]
         X = triangulate_multiview(cameras, x_members, observed.double())
@@ -166,9 +169,10 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         if int(reference.sum()) < ProjectiveResectionModel.sample_size:
             return "too few tracks of the group are seen in three frames"
         correction = (1 - 2 / (9 * dof[reference].double())) ** 3  # median of χ²_k / k
-        sigma_sq = float((sse[reference] / dof[reference] / correction).median())
-        core = tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance))
-        if step == refinements:
+        sigma_sq, previous_sigma_sq = float((sse[reference] / dof[reference] / correction).median()), sigma_sq
+        core, previous_core = tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance)), core
+        if step == refinements or (step > 0 and abs(sigma_sq - previous_sigma_sq) <= SETTLED * previous_sigma_sq
+                                   and bool(torch.equal(core, previous_core))):
             break
         used = observed & core
         depth = projected[..., 2].abs()  # (F, M): rows scaled by 1 / |p3ᵀX|

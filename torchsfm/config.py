@@ -515,16 +515,17 @@ class MovingObjectsConfig:
     :func:`torchsfm.segment_motions` with the ``segmentation`` settings, its static scene kept;
     measured on Hopkins155 and KT3DMoSeg the most accurate), ``triplets`` (those votes), ``rigid_groups`` (up to
     ``max_motions`` rigid groups of at least ``min_group_tracks`` tracks, each a projective
-    reconstruction over all frames whose cameras come from ``resection_ransac`` and
-    ``track_refinements`` alternations; a track belongs to a group within the larger of the χ²
-    bound at ``track_significance`` and ``track_tolerance`` px RMS; the static group is the one
-    the votes reject least) or ``both``. ``enabled`` turns the rejection on in the two-view and
-    multi-view pipelines. With ``reconstruct_objects`` pair verification also keeps a second
-    motion's matches (a second F on the first one's outliers, at least ``min_object_tracks``),
-    which one F per pair would throw away, and the multi-view pipeline segments the tracks
-    (``track_method`` ``segmentation`` whatever it is set to), reconstructs the static scene from
-    label 0 and each moving body with at least ``min_object_tracks`` tracks seen in at least
-    ``min_object_frames`` frames as its own model (:class:`~torchsfm.reconstruction.MovingObject`).
+    reconstruction over all frames whose cameras come from ``resection_ransac`` and at most
+    ``track_refinements`` alternations, fewer once they converge; a track belongs to a group
+    within the larger of the χ² bound at ``track_significance`` and ``track_tolerance`` px RMS;
+    the static group is the one the votes reject least) or ``both``. ``enabled`` turns the
+    rejection on in the two-view and multi-view pipelines. With ``reconstruct_objects`` pair
+    verification also keeps a second motion's matches (a second F on the first one's outliers,
+    at least ``min_object_tracks``), which one F per pair would throw away, and the multi-view
+    pipeline segments the tracks (``track_method`` ``segmentation`` whatever it is set to),
+    reconstructs the static scene from label 0 and each moving body with at least
+    ``min_object_tracks`` tracks seen in at least ``min_object_frames`` frames as its own model
+    (:class:`~torchsfm.reconstruction.MovingObject`).
     A body is reconstructed ``object_starts`` times from independent random draws and the model
     that registers most frames, then has the smallest truncated squared reprojection error, is
     kept (:func:`~torchsfm.sfm.from_tracks.reconstruct_body`): a small body's two-view geometry can be ill-conditioned, and the initial pair with
@@ -621,7 +622,7 @@ class SegmentationConfig:
     at ``scene_tolerance``) — a track is explained within the larger of ``scene_tolerance`` px (the
     tracker's noise floor) and the χ² bound at ``scene_significance``, a motion or piece by the
     majority of its tracks (:func:`torchsfm.moving.segmentation.settle_scene`); the residual is
-    the scene's projective reconstruction (``scene_refinements`` camera / point alternations)
+    the scene's projective reconstruction (at most ``scene_refinements`` camera / point alternations)
     when the scene has parallax beyond that floor, else one F per frame pair.
     """
 

@@ -243,7 +243,7 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     σ·sqrt(χ²_(1−α)(d) / n) (σ the scene's median residual, n the residual's terms, d its
     degrees of freedom, α = ``config.scene_significance``). The residual is the scene's
     projective reconstruction over all frames (:func:`~torchsfm.moving.static_tracks.rigid_group`,
-    ``config.scene_refinements`` camera / point alternations; reprojection RMS, d = 2m − 3 for m
+    at most ``config.scene_refinements`` camera / point alternations; reprojection RMS, d = 2m − 3 for m
     frames) when the scene has parallax — its median distance to one homography per frame pair
     beyond the noise floor — and its tracks tie the frames together (median span at least a
     third of the sequence, :func:`median_span`), for then the multi-view constraint also fixes

@@ -587,3 +587,40 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     assert float(sampson[0][background & ~left].median()) > SegmentationConfig().scene_tolerance
     excess = scene_excess(data.tracks, visible, left, pairs, SegmentationConfig(), torch.Generator().manual_seed(0))
     assert float(excess[background & ~left].nanmedian()) <= 1 < float(excess[data.labels == 1].nanmedian())
+
+
+def test_kmeans_stops_at_its_fixed_point_with_the_labels_of_every_iteration(monkeypatch):
+    """Five blobs of 2-D points, 10 restarts: k-means stops once every restart's labels repeat,
+    well before the 30 iterations allowed, with exactly the labels of Lloyd's steps run to the
+    end (written out here: the same draws, every iteration)."""
+    from torchsfm.moving.segmentation import kmeans
+
+    g = torch.Generator().manual_seed(3)
+    centres = 10 * torch.randn(5, 2, generator=g, dtype=torch.float64)
+    points = (centres[:, None] + torch.randn(5, 40, 2, generator=g, dtype=torch.float64)).reshape(-1, 2)
+
+    def lloyd(iterations: int) -> torch.Tensor:
+        generator = torch.Generator().manual_seed(0)
+        start = torch.rand(10, points.shape[0], generator=generator).argsort(1)[:, :5]
+        means = points[start]
+        for _ in range(iterations):
+            labels = torch.cdist(points[None].expand(10, -1, -1), means).argmin(2)
+            one_hot = torch.nn.functional.one_hot(labels, 5).to(points.dtype)
+            counts = one_hot.sum(1)
+            means = torch.where(counts[..., None] > 0, (one_hot.transpose(1, 2) @ points) / counts[..., None].clamp_min(1), means)
+        labels = torch.cdist(points[None].expand(10, -1, -1), means).argmin(2)
+        cost = (points[None] - means.gather(1, labels[..., None].expand(-1, -1, 2))).square().sum((1, 2))
+        return labels[int(cost.argmin())]
+
+    distances, cdist = [], torch.cdist
+
+    def counted(*args, **kwargs):
+        distances.append(1)
+        return cdist(*args, **kwargs)
+
+    monkeypatch.setattr(torch, "cdist", counted)
+    found = kmeans(points, 5, 10, 30, torch.Generator().manual_seed(0))
+    steps = len(distances)
+    monkeypatch.undo()
+    assert steps < 30
+    assert torch.equal(found, lloyd(30))

@@ -707,12 +707,18 @@ def leading_eigenvectors(affinity: Tensor, count: int) -> tuple[Tensor, Tensor]:
 
 def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: torch.Generator) -> Tensor:
     """Lloyd's k-means on (N, D) points with ``restarts`` random initializations run as one
-    batch; the labels (N,) of the restart with the smallest within-cluster sum of squares."""
+    batch, for ``iterations`` steps or until every restart's labels repeat (a fixed point: the
+    centres, and so every later step, would repeat too); the labels (N,) of the restart with the
+    smallest within-cluster sum of squares."""
     N = points.shape[0]
     start = torch.rand(restarts, N, generator=generator, device=points.device).argsort(1)[:, :k]
     centres = points[start]  # (R, k, D)
+    previous = None
     for _ in range(iterations):
         labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)  # (R, N)
+        if previous is not None and torch.equal(labels, previous):
+            break
+        previous = labels
         one_hot = torch.nn.functional.one_hot(labels, k).to(points.dtype)  # (R, N, k)
         counts = one_hot.sum(1)  # (R, k)
         sums = one_hot.transpose(1, 2) @ points  # (R, k, D)

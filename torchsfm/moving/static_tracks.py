@@ -157,7 +157,7 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     index = torch.nonzero(members).flatten()
     x_members, visible_members, core = x[:, index], visible[:, index], group[index]
     M = index.numel()
-    sigma_sq = math.nan
+    previous = None  # the last step's σ² and core
     for step in range(refinements + 1):
         observed = visible_members & camera_valid[:, None]
         X = triangulate_multiview(cameras, x_members, observed.double())
@@ -169,11 +169,12 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         if int(reference.sum()) < ProjectiveResectionModel.sample_size:
             return "too few tracks of the group are seen in three frames"
         correction = (1 - 2 / (9 * dof[reference].double())) ** 3  # median of χ²_k / k
-        sigma_sq, previous_sigma_sq = float((sse[reference] / dof[reference] / correction).median()), sigma_sq
-        core, previous_core = tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance)), core
-        if step == refinements or (step > 0 and abs(sigma_sq - previous_sigma_sq) <= SETTLED * previous_sigma_sq
-                                   and bool(torch.equal(core, previous_core))):
+        sigma_sq = float((sse[reference] / dof[reference] / correction).median())
+        core = tested & (sse <= sigma_sq * chi2_quantile(dof, 1 - significance))
+        settled = previous is not None and abs(sigma_sq - previous[0]) <= SETTLED * previous[0] and bool(torch.equal(core, previous[1]))
+        if step == refinements or settled:
             break
+        previous = sigma_sq, core
         used = observed & core
         depth = projected[..., 2].abs()  # (F, M): rows scaled by 1 / |p3ᵀX|
         typical = floor_tiny(torch.where(used, depth, torch.nan).nanmedian(1).values[:, None])

@@ -4,7 +4,7 @@ from torch.testing import assert_close
 
 from torchsfm.config import LMConfig
 from torchsfm.geometry.rotation import axis_angle_to_rotation
-from torchsfm.optim.lm import forward_jacobian, levenberg_marquardt
+from torchsfm.optim.lm import DenseLinearization, forward_jacobian, levenberg_marquardt, minimize
 
 DOUBLE = dict(dtype=torch.float64)
 
@@ -33,6 +33,41 @@ def test_analytic_jacobian_gives_the_same_answer():
     assert_close(jacobian(start), forward_jacobian(rosenbrock, start, lambda p, d: p + d, 2))
     result = levenberg_marquardt(rosenbrock, start, LMConfig(), jacobian=jacobian)
     assert_close(result.params, torch.ones(1, 2, **DOUBLE), rtol=0, atol=1e-8)
+
+
+def rosenbrock_jacobian(p):
+    return torch.stack([torch.stack([-20 * p[:, 0], torch.full_like(p[:, 0], 10.0)], -1),
+                        torch.stack([-torch.ones_like(p[:, 0]), torch.zeros_like(p[:, 0])], -1)], dim=1)
+
+
+def test_residuals_are_computed_once_per_costed_point_with_the_same_result():
+    """The dense problem reuses the residuals of the point it has just costed when it linearizes
+    there: one residual evaluation per cost evaluation, and bit for bit the result of a problem
+    that evaluates them again (four problems that accept their steps at different iterations)."""
+    class Recomputing:
+        def cost(self, params):
+            return 0.5 * rosenbrock(params).square().sum(-1)
+
+        def linearize(self, params):
+            return DenseLinearization(rosenbrock_jacobian(params), rosenbrock(params))
+
+        def retract(self, params, delta):
+            return params + delta
+
+    calls = []
+
+    def counted(p):
+        calls.append(p)
+        return rosenbrock(p)
+
+    start = torch.tensor([[-1.2, 1.0], [0.5, 0.5], [3.0, -2.0], [-0.5, 2.0]], **DOUBLE)
+    result = levenberg_marquardt(counted, start, LMConfig(), jacobian=rosenbrock_jacobian)
+    reference = minimize(Recomputing(), start, LMConfig())
+    assert_close(result.params, reference.params, rtol=0, atol=0)
+    assert_close(result.cost, reference.cost, rtol=0, atol=0)
+    assert torch.equal(result.num_iterations, reference.num_iterations)
+    assert len(set(result.num_iterations.tolist())) > 1  # the problems stop at different iterations
+    assert len(calls) == 1 + int(result.num_iterations.max())  # the start, then one candidate per iteration
 
 
 def test_manifold_parameters_with_a_retraction():

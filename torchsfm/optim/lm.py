@@ -128,8 +128,8 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         params = torch.where(accept.reshape(-1, *[1] * (params.dim() - 1)), candidate, params)
         cost_before = cost
         cost = torch.where(accept, cost_new, cost)
-        if bool(accept.any()):
-            linear = _merge(accept, problem.linearize(params), linear)
+        if bool(accept.any()):  # at the candidate: it is ``params`` wherever the step was accepted, and only there is it used
+            linear = _merge(accept, problem.linearize(candidate), linear)
         shrink = torch.clamp(1 - (2 * rho - 1) ** 3, min=1 / 3)
         mu = torch.where(accept, mu * shrink, torch.where(active, mu * nu, mu))
         nu = torch.where(accept, torch.full_like(nu, 2.0), torch.where(active, nu * 2, nu))
@@ -190,16 +190,24 @@ def forward_jacobian(residuals: ResidualFn, params: Tensor, retract: RetractFn, 
 
 
 class _DenseProblem:
+    """A dense problem for :func:`minimize`. The residuals of the last ``cost`` call are kept:
+    :func:`minimize` linearizes at the parameters it has just costed (the start, an accepted
+    candidate), and the residuals need not be computed twice."""
+
     def __init__(self, residuals: ResidualFn, retract: RetractFn, tangent_dim: int,
                  jacobian: Callable[[Tensor], Tensor] | None) -> None:
         self.residuals, self.retract, self.tangent_dim, self.jacobian = residuals, retract, tangent_dim, jacobian
+        self._costed: tuple[Tensor, Tensor] | None = None  # (params, residuals) of the last cost
 
     def cost(self, params: Tensor) -> Tensor:
-        return 0.5 * self.residuals(params).square().sum(-1)
+        residuals = self.residuals(params)
+        self._costed = params, residuals
+        return 0.5 * residuals.square().sum(-1)
 
     def linearize(self, params: Tensor) -> DenseLinearization:
         J = self.jacobian(params) if self.jacobian is not None else forward_jacobian(self.residuals, params, self.retract, self.tangent_dim)
-        return DenseLinearization(J, self.residuals(params))
+        costed = self._costed is not None and self._costed[0] is params
+        return DenseLinearization(J, self._costed[1] if costed else self.residuals(params))
 
 
 def levenberg_marquardt(

@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
+from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows, has_distinct_rows
 
 
 def test_shapes_bind_names_across_arguments():
@@ -40,3 +40,19 @@ def test_count_distinct_rows():
     expected = torch.tensor([len({tuple(row) for row in matrix.tolist()}) for matrix in batch])
     assert torch.equal(count_distinct_rows(batch), expected)
     assert torch.equal(count_distinct_rows(batch.reshape(5, 1, 40, 2)), expected.reshape(5, 1))
+
+
+def test_has_distinct_rows_agrees_with_the_count():
+    """Exact whether the distinct rows come early, only after the first 4k rows, or never."""
+    g = torch.Generator().manual_seed(1)
+    k = 8
+    batch = torch.randint(0, 3, (6, 100, 2), generator=g).double()  # 9 possible rows: mostly >= 8 distinct
+    batch[1] = 0.0  # one point repeated
+    batch[2, : 4 * k] = 0.0  # the distinct rows only after the first 4k
+    batch[3] = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]).repeat(34, 1)[:100]  # 3 distinct
+    batch[4, : 4 * k] = 0.0
+    batch[4, 4 * k:] = torch.arange(1.0, 8.0).repeat(10)[: 100 - 4 * k, None]  # 8 distinct in all ((0, 0) and 7 more), late
+    expected = count_distinct_rows(batch) >= k
+    assert expected.tolist() == [True, False, True, False, True, expected[5].item()]
+    assert torch.equal(has_distinct_rows(batch, k), expected)
+    assert torch.equal(has_distinct_rows(batch[[0, 5]], k), expected[[0, 5]])  # the early answer alone

@@ -23,7 +23,7 @@ from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.robust.models import EssentialModel, FundamentalModel
 from torchsfm.estimators.calibrated_pose import calibrated_pose
 from torchsfm.robust.ransac import ransac
-from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows
+from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, count_distinct_rows, has_distinct_rows
 
 
 @dataclass
@@ -93,11 +93,11 @@ def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) 
         x1, x2 = (torch.where(mask[..., None], x, 0.0) for x in (x1, x2))
     if valid is None:
         for name, x in (("x1", x1), ("x2", x2)):
-            distinct = count_distinct_rows(x)  # (B,)
-            if bool((distinct < 8).any()):
-                b = int(torch.nonzero(distinct < 8)[0, 0])
+            enough = has_distinct_rows(x, 8)  # (B,)
+            if not bool(enough.all()):
+                b = int(torch.nonzero(~enough)[0, 0])
                 raise DegenerateConfigurationError(
-                    f"{name}{'' if unbatched else f'[{b}]'} has only {int(distinct[b])} distinct point(s); "
+                    f"{name}{'' if unbatched else f'[{b}]'} has only {int(count_distinct_rows(x[b]))} distinct point(s); "
                     "a fundamental matrix needs at least 8 distinct correspondences"
                 )
     return x1, x2, unbatched, mask

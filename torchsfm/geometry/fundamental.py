@@ -245,8 +245,10 @@ def sampson_error_of_hypotheses(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     line2 = h1 @ F[:, :, :2, :].reshape(B, 2 * H, 3).transpose(-1, -2)  # (B, N, 2H): rows 0, 1 of F on h1
     line1 = h2 @ F[:, :, :, :2].transpose(-1, -2).reshape(B, 2 * H, 3).transpose(-1, -2)  # columns 0, 1 on h2
     line2, line1 = line2.square_().reshape(B, N, H, 2), line1.square_().reshape(B, N, H, 2)
-    denominator = line2[..., 0] + line2[..., 1] + line1[..., 0] + line1[..., 1]  # not .sum(-1): slow over 2
-    return (algebraic.square_() / denominator.clamp_min_(1e-30)).transpose(-1, -2)
+    denominator = line2[..., 0] + line2[..., 1]  # not .sum(-1): slow over 2; in place: no more (B, N, H) tables
+    denominator += line1[..., 0]
+    denominator += line1[..., 1]
+    return algebraic.square_().div_(denominator.clamp_min_(1e-30)).transpose(-1, -2)
 
 
 def epipolar_line_distances(F: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tensor, Tensor]:

@@ -5,8 +5,8 @@ shuffled order (a fixed seeded permutation) and with every third view only (wide
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61
 degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
 size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); the KITTI
-odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth and tenth frame of
-it (about 6, 10 and 12 m apart), its frames shuffled and in reverse (the camera backing away);
+odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
+it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
@@ -106,7 +106,9 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
         "kitti06_every5": subset(kitti, list(range(0, 51, 5))),
         "kitti06_every8": subset(kitti, list(range(0, 51, 8))),
+        "kitti06_every9": subset(kitti, list(range(0, 51, 9))),
         "kitti06_every10": subset(kitti, list(range(0, 51, 10))),
+        "kitti06_every10_from5": subset(kitti, list(range(5, 51, 10))),
         "kitti06_shuffled": subset(kitti, shuffle(51)),
         "kitti06_reversed": subset(kitti, list(range(50, -1, -1))),
         "merton": read_merton(data / "oxford_merton1"),

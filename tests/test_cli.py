@@ -68,6 +68,19 @@ def test_grey_and_colour_images_both_work(tmp_path):
     assert main(["two-view", str(IMAGE1), str(grey), "--K", str(K_FILE), "--out", str(tmp_path / "m"), "--quiet"]) == 0
 
 
+def test_sixteen_bit_images_are_read_with_their_contrast(tmp_path):
+    """A 12-bit camera's 16-bit PNG (values up to 4080) reads back as the 8-bit image it was
+    made from, and the two-view command runs on it."""
+    import kornia
+
+    image = read_image(IMAGE2)
+    assert int(image.max()) == 255  # so the scaling is exact
+    twelve_bit = tmp_path / "twelve_bit.png"
+    kornia.io.write_image(twelve_bit, (image.to(torch.int32) * 16).to(torch.uint16).contiguous())
+    assert torch.equal(read_image(twelve_bit), image)
+    assert main(["two-view", str(IMAGE1), str(twelve_bit), "--K", str(K_FILE), "--out", str(tmp_path / "m"), "--quiet"]) == 0
+
+
 @pytest.mark.parametrize("content, message", [
     ("1 0 0\n0 1 0\n", "3x3 matrix"),
     ("689 0 380\n0 0 251\n0 0 1\n", "K is singular"),

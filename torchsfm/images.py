@@ -15,7 +15,9 @@ from torchsfm.errors import InputError, ShapeError
 
 def read_image(path: str | Path) -> Tensor:
     """Read a JPEG/PNG as (3, H, W) uint8 RGB (a grey file's channels are one plane expanded:
-    stride 0, no copy)."""
+    stride 0, no copy). A 16-bit PNG is scaled so that its largest value becomes 255: a camera
+    that fills 10 or 12 of the 16 bits keeps 8 bits of contrast (everything downstream —
+    Harris' relative threshold, NCC — is invariant to the gain)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"cannot read image {path}: no such file")
@@ -27,6 +29,9 @@ def read_image(path: str | Path) -> Tensor:
         image = image[None]
     if image.shape[0] == 4:
         image = image[:3]
+    if image.dtype == torch.uint16:  # torch has few uint16 kernels: through int32
+        wide = image.to(torch.int32)
+        image = (wide.float() * (255 / max(int(wide.max()), 1))).round().to(torch.uint8)
     if image.shape[0] not in (1, 3) or image.dtype != torch.uint8:
         raise InputError(f"cannot read image {path}: expected an 8-bit grey or colour image, got {tuple(image.shape)} {image.dtype}")
     return image.contiguous().expand(3, -1, -1)  # a grey file's three channels share one plane: no copy

@@ -19,7 +19,6 @@ import math
 import torch
 from torch import Tensor
 
-from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.rotation import nearest_rotation, quaternion_to_rotation, skew
 from torchsfm.numerics import floor_tiny
 
@@ -120,11 +119,12 @@ def two_view_depths(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> tuple[Tenso
     """Depths (λ1, λ2) with λ2 x̃2 ≈ λ1 R x̃1 + t, in closed form (cross products with x̃2, R x̃1).
 
     R (*, 3, 3), t (*, 3), normalized points x1, x2 (*, N, 2) -> two (*, N). A point is in front
-    of both cameras when both depths are positive. The cross products are written out per
-    coordinate: each step then runs along the N points (``torch.linalg.cross`` over a last axis
-    of 3 ran at a fifth of the speed).
+    of both cameras when both depths are positive. R x̃1 and the cross products are written out
+    per coordinate: each step then runs along the N points (``torch.linalg.cross`` over a last
+    axis of 3 ran at a fifth of the speed, and the product with R copied the points per candidate).
     """
-    r0, r1, r2 = (to_homogeneous(x1) @ R.transpose(-1, -2)).unbind(-1)  # R x̃1, (*, N) each
+    v0, v1 = x1.unbind(-1)  # x̃1 = (v0, v1, 1)
+    r0, r1, r2 = (R[..., k, 0, None] * v0 + R[..., k, 1, None] * v1 + R[..., k, 2, None] for k in range(3))  # R x̃1, (*, N) each
     u0, u1 = x2.unbind(-1)  # x̃2 = (u0, u1, 1)
     t0, t1, t2 = (component[..., None] for component in t.unbind(-1))
     c0, c1, c2 = u1 * r2 - r1, r0 - u0 * r2, u0 * r1 - u1 * r0  # x̃2 × R x̃1

@@ -4,6 +4,7 @@ import json
 import subprocess
 import sys
 
+import kornia
 import pytest
 import torch
 
@@ -71,8 +72,6 @@ def test_grey_and_colour_images_both_work(tmp_path):
 def test_sixteen_bit_images_are_read_with_their_contrast(tmp_path):
     """A 12-bit camera's 16-bit PNG (values up to 4080) reads back as the 8-bit image it was
     made from, and the two-view command runs on it."""
-    import kornia
-
     image = read_image(IMAGE2)
     assert int(image.max()) == 255  # so the scaling is exact
     twelve_bit = tmp_path / "twelve_bit.png"

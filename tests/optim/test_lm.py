@@ -24,20 +24,17 @@ def test_batched_rosenbrock_converges_per_problem():
     assert (result.cost <= result.initial_cost).all()
 
 
-def test_analytic_jacobian_gives_the_same_answer():
-    def jacobian(p):
-        rows = [torch.stack([-20 * p[:, 0], torch.full_like(p[:, 0], 10.0)], -1), torch.stack([-torch.ones_like(p[:, 0]), torch.zeros_like(p[:, 0])], -1)]
-        return torch.stack(rows, dim=1)
-
-    start = torch.tensor([[-1.2, 1.0]], **DOUBLE)
-    assert_close(jacobian(start), forward_jacobian(rosenbrock, start, lambda p, d: p + d, 2))
-    result = levenberg_marquardt(rosenbrock, start, LMConfig(), jacobian=jacobian)
-    assert_close(result.params, torch.ones(1, 2, **DOUBLE), rtol=0, atol=1e-8)
-
-
 def rosenbrock_jacobian(p):
+    """(B, 2, 2) analytic Jacobian of :func:`rosenbrock`."""
     return torch.stack([torch.stack([-20 * p[:, 0], torch.full_like(p[:, 0], 10.0)], -1),
                         torch.stack([-torch.ones_like(p[:, 0]), torch.zeros_like(p[:, 0])], -1)], dim=1)
+
+
+def test_analytic_jacobian_gives_the_same_answer():
+    start = torch.tensor([[-1.2, 1.0]], **DOUBLE)
+    assert_close(rosenbrock_jacobian(start), forward_jacobian(rosenbrock, start, lambda p, d: p + d, 2))
+    result = levenberg_marquardt(rosenbrock, start, LMConfig(), jacobian=rosenbrock_jacobian)
+    assert_close(result.params, torch.ones(1, 2, **DOUBLE), rtol=0, atol=1e-8)
 
 
 def test_residuals_are_computed_once_per_costed_point_with_the_same_result():

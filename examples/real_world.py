@@ -16,7 +16,7 @@ maxima), consecutive-frame relative rotation error, seconds — beside pycolmap 
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping; with
 ``--no-K`` its own default: one focal length from its prior, refined, the principal point at the centre).
 
-    python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap] [--set KEY=VALUE]
+    python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap] [--seed S] [--set KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -130,11 +130,11 @@ def errors_row(R: torch.Tensor, t: torch.Tensor, sequence: StrechaSequence, inde
             f"rotation {float(errors.rotation.median()):.3f} deg (max {float(errors.rotation.max()):.3f}), consecutive rel. rot. {step} deg")
 
 
-def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Config) -> str:
+def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Config, seed: int) -> str:
     start = time.perf_counter()
     try:
         model = torchsfm.reconstruct(sequence.images, sequence.K if with_K else None, config=config,
-                                     generator=torch.Generator().manual_seed(0))
+                                     generator=torch.Generator().manual_seed(seed))
     except TorchSfmError as error:
         return f"failed: {error} ({time.perf_counter() - start:.1f} s)"
     seconds = time.perf_counter() - start
@@ -207,13 +207,14 @@ def main() -> None:
     parser.add_argument("--no-K", action="store_true", help="reconstruct without the intrinsics")
     parser.add_argument("--no-colmap", action="store_true")
     parser.add_argument("--work", type=Path, default=Path("outputs/real_world"))
+    parser.add_argument("--seed", type=int, default=0, help="seed of torchsfm's random choices (RANSAC samples, starts)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override one torchsfm config value")
     args = parser.parse_args()
     config = with_overrides(torchsfm.Config(), args.set)
     chosen = cases(args.data, args.work, [name for name in args.cases.split(",") if name])
     for name, sequence in chosen.items():
         print(f"{name} ({len(sequence.images)} images)")
-        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config)}", flush=True)
+        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config, args.seed)}", flush=True)
         if not args.no_colmap:
             print(f"  pycolmap{' (no K)' if args.no_K else ''}: {run_pycolmap(sequence, args.work / name, not args.no_K)}", flush=True)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -16,7 +17,7 @@ from torchsfm.errors import ConfigError
 from torchsfm.images import read_image
 from torchsfm.sfm.from_tracks import ReconstructObjects
 from torchsfm.pipeline import ConfiguredStage
-from torchsfm.sfm.stages import MatchPairs, ViewSet, default_pipeline, joining_pairs
+from torchsfm.sfm.stages import MatchPairs, ViewSet, _better_of, default_pipeline, joining_pairs
 from torchsfm.sfm.two_view import PairState, TwoViewReconstruction
 from torchsfm.sfm.view_pairs import PairMatches, putative_matches
 
@@ -115,3 +116,21 @@ def test_only_the_strongest_bridge_joins_two_groups():
 
     bridges = {(2, 3): bridge(40), (0, 4): bridge(90), (1, 5): bridge(30), (4, 5): bridge(50), (0, 1): bridge(99)}
     assert sorted(joining_pairs(bridges, [[0, 1, 2], [3, 4]], 6)) == [(0, 4), (4, 5)]
+
+
+def test_of_two_models_the_one_with_more_views_then_fewer_loose_then_more_points_is_kept():
+    """A retry is kept when its model registers more views; with as many, when fewer of them
+    were resected loosely; with as many of both, when it holds more points (a model a wrong pair
+    started holds few: a second view seldom confirms chance matches). A full tie keeps the first."""
+    def state(views: int, loose: int, points: int):
+        model = SimpleNamespace(view_indices=list(range(views)), loose_resections=dict.fromkeys(range(loose), 8.0), num_points=points)
+        return SimpleNamespace(reconstruction=model, report=lambda message: None)
+
+    first = state(2, 0, 29)
+    assert _better_of(first, more := state(3, 1, 10)) is more
+    assert _better_of(state(3, 1, 500), tighter := state(3, 0, 10)) is tighter
+    assert _better_of(first, denser := state(2, 0, 233)) is denser
+    assert _better_of(first, state(2, 0, 29)) is first
+    assert _better_of(denser, first) is denser
+
+

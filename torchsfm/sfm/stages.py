@@ -225,8 +225,7 @@ class RematchUnregistered(RetryStage):
     (``pairs.epipolar_matching``): the verified pairs of those views and of their partners (the
     tracks through a partner link a view to the model) are matched again in their epipolar
     bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
-    run again; the model that registers more views, or as many with fewer loose resections, is
-    kept. Costs nothing where every view registers at the threshold, or where the others form
+    run again; the model that stands higher (:func:`_standing`) is kept. Costs nothing where every view registers at the threshold, or where the others form
     separate groups. ``retry`` is the pipeline run again on the rematched pairs
     (:class:`RetryStage`)."""
 
@@ -263,7 +262,7 @@ class BridgeWithSift(RetryStage):
     joining pairs and of the other verified pairs of their views and of the left-out views
     (their tracks carry the link into the model). These pairs replace those of the same views,
     and the tracks, the moving-object decision and the mapping run again; the model that
-    registers more views is kept, and the stage repeats while the model grows (each view
+    stands higher (:func:`_standing`) is kept, and the stage repeats while it gains (each view
     described once). SIFT only finds where to look: every match is still a Harris corner pair.
     Costs nothing where every view registers. ``retry``: see :class:`RetryStage`."""
 
@@ -333,18 +332,18 @@ def joining_pairs(bridges: dict[tuple[int, int], PairMatches], groups: list[list
 
 
 def _better_of(first: ViewSet, second: ViewSet) -> ViewSet:
-    """The state whose model registers more views, then fewer of them loosely (``first`` on a
-    tie)."""
+    """The state whose model stands higher (:func:`_standing`; ``first`` on a tie)."""
     better = _standing(second.reconstruction) > _standing(first.reconstruction)
     first.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
                  + ("kept" if better else "the first model kept"))
     return second if better else first
 
 
-def _standing(model: Reconstruction) -> tuple[int, int]:
+def _standing(model: Reconstruction) -> tuple[int, int, int]:
     """How a model ranks against another of the same views: more views registered, then fewer
-    of them loosely."""
-    return len(model.view_indices), -len(model.loose_resections)
+    of them loosely, then more points (of two models of as many views, the one a wrong pair
+    started has few: its matches are mostly chance ones that a second view seldom confirms)."""
+    return len(model.view_indices), -len(model.loose_resections), model.num_points
 
 
 class MapIncrementally(ConfiguredStage):

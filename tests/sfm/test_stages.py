@@ -132,5 +132,3 @@ def test_of_two_models_the_one_with_more_views_then_fewer_loose_then_more_points
     assert _better_of(first, denser := state(2, 0, 233)) is denser
     assert _better_of(first, state(2, 0, 29)) is first
     assert _better_of(denser, first) is denser
-
-

@@ -225,9 +225,9 @@ class RematchUnregistered(RetryStage):
     (``pairs.epipolar_matching``): the verified pairs of those views and of their partners (the
     tracks through a partner link a view to the model) are matched again in their epipolar
     bands (:func:`epipolar_matches`), and the tracks, the moving-object decision and the mapping
-    run again; the model that stands higher (:func:`_standing`) is kept. Costs nothing where every view registers at the threshold, or where the others form
-    separate groups. ``retry`` is the pipeline run again on the rematched pairs
-    (:class:`RetryStage`)."""
+    run again; the model that stands higher (:func:`_standing`) is kept. Costs nothing where
+    every view registers at the threshold, or where the others form separate groups. ``retry``
+    is the pipeline run again on the rematched pairs (:class:`RetryStage`)."""
 
     SECTIONS = ("matching", "pairs", "fundamental")
 

@@ -333,8 +333,12 @@ def joining_pairs(bridges: dict[tuple[int, int], PairMatches], groups: list[list
 
 def _better_of(first: ViewSet, second: ViewSet) -> ViewSet:
     """The state whose model stands higher (:func:`_standing`; ``first`` on a tie)."""
-    better = _standing(second.reconstruction) > _standing(first.reconstruction)
-    first.report(f"the second attempt registers {len(second.reconstruction.view_indices)} views: "
+    def described(standing: tuple[int, int, int]) -> str:
+        return f"{standing[0]} views ({-standing[1]} loosely, {standing[2]} points)"
+
+    mine, theirs = _standing(first.reconstruction), _standing(second.reconstruction)
+    better = theirs > mine
+    first.report(f"the second attempt registers {described(theirs)} against {described(mine)}: "
                  + ("kept" if better else "the first model kept"))
     return second if better else first
 

@@ -26,6 +26,8 @@ from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.validation import check_finite, check_shapes
 from torchsfm.numerics import floor_tiny
 
+FOCAL_PRIOR = 1.2  # × the larger image side: the focal length of a camera without calibration (a common field of view, as COLMAP's)
+
 
 def to_homogeneous(x: Tensor) -> Tensor:
     """Append a coordinate 1: (*, D) -> (*, D + 1)."""

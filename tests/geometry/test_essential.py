@@ -8,6 +8,7 @@ from torchsfm.geometry.essential import (
     cheirality_counts,
     essential_from_fundamental,
     essential_from_pose,
+    parallax_from_infinity,
     select_pose,
     two_view_depths,
 )
@@ -56,6 +57,26 @@ def test_depths_in_closed_form():
     depth1, depth2 = two_view_depths(scene.R, scene.t, *_normalized(scene))
     assert_close(depth1, scene.points3d[:, 2], rtol=1e-10, atol=0)
     assert_close(depth2, (scene.points3d @ scene.R.T + scene.t)[:, 2], rtol=1e-10, atol=0)
+
+
+def test_parallax_from_infinity_is_positive_in_front_zero_at_infinity_and_negative_behind():
+    """Exact on a noise-free pair: each point X in front of both cameras, its mirror image −X
+    behind both (the same image in camera 1, and on the same epipolar line in camera 2), and a
+    point at infinity (camera 2 sees it at R x̃1). The parallax's size is the distance from that
+    image along the line: |parallax| = ‖x2 − p∞‖ for points on the line."""
+    scene = synthetic_two_view(30, seed=7)
+    n1, n2 = _normalized(scene)
+    ray = torch.cat([n1, torch.ones_like(n1[:, :1])], -1) @ scene.R.T
+    at_infinity = ray[:, :2] / ray[:, 2:]
+    in_front = parallax_from_infinity(scene.R, scene.t, n1, n2)
+    assert bool((in_front > 0).all())
+    assert_close(in_front, (n2 - at_infinity).norm(dim=-1), rtol=1e-10, atol=0)
+    mirrored = -scene.points3d @ scene.R.T + scene.t  # -X in camera 2: behind camera 1 (depth -Z) and camera 2
+    assert bool((mirrored[:, 2] < 0).all())
+    behind = parallax_from_infinity(scene.R, scene.t, n1, mirrored[:, :2] / mirrored[:, 2:])
+    assert bool((behind < 0).all())
+    assert_close(parallax_from_infinity(scene.R, scene.t, n1, at_infinity), torch.zeros(30, **DOUBLE), rtol=0, atol=1e-12)
+    assert_close(parallax_from_infinity(scene.R, torch.zeros(3, **DOUBLE), n1, n2), torch.zeros(30, **DOUBLE), rtol=0, atol=0)
 
 
 def test_methods_agree_on_a_noisy_rank2_E():

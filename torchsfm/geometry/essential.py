@@ -163,3 +163,28 @@ def select_pose(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, weights: Tensor | 
     t_best = torch.gather(t, -2, best[..., None, None].expand(*best.shape, 1, 3)).squeeze(-2)
     total = weights.sum(-1) if weights is not None else torch.full_like(counts[..., 0], x1.shape[-2])
     return R_best, t_best, counts.amax(-1) / total.clamp_min(1)
+
+
+def parallax_from_infinity(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
+    """Signed parallax of x2 along its epipolar line, from where x1's point at infinity would be
+    seen (the image of R x̃1) towards where a nearer point in front of both cameras would be.
+
+    A point at inverse depth ρ ≥ 0 in camera 1 is seen in camera 2 at (R x̃1 + ρ t) / (R x̃1 + ρ t)_3,
+    which leaves the image p∞ of R x̃1 at ρ = 0 in the direction u = sign((R x̃1)_3) (t_xy − p∞ t_3).
+    The parallax is (x2 − p∞) · u / ‖u‖: positive for a point in front of both cameras, about
+    zero for a distant one, negative for one "beyond infinity" — behind both cameras, which no
+    static point can be (a body moving faster than the camera along its direction of travel).
+    Unlike the Sampson distance it measures along the epipolar line, where F says nothing.
+
+    Args:
+        R, t: the relative pose (*, 3, 3), (*, 3) (``X2 = R X1 + t``).
+        x1, x2: normalized correspondences (*, N, 2).
+
+    Returns:
+        (*, N) parallax in normalized units (0 where the direction is undefined: no translation).
+    """
+    ray = torch.cat([x1, torch.ones_like(x1[..., :1])], -1) @ R.transpose(-1, -2)  # (*, N, 3): R x̃1
+    at_infinity = ray[..., :2] / ray[..., 2:]  # p∞ (*, N, 2)
+    direction = (t[..., None, :2] - at_infinity * t[..., None, 2:]) * torch.sign(ray[..., 2:])
+    direction = direction / floor_tiny(direction.norm(dim=-1, keepdim=True))
+    return ((x2 - at_infinity) * direction).sum(-1)

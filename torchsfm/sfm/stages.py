@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from torchsfm.camera import undistort_points
+from torchsfm.camera import FOCAL_PRIOR, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
@@ -33,7 +33,7 @@ from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.pairs import bridge_pairs, coarse_features, turned_homographies
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
-from torchsfm.sfm.view_pairs import (FOCAL_PRIOR, PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
+from torchsfm.sfm.view_pairs import (PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
                                      reject_moving_tracks, self_calibrate, verify_pairs)
 
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from torchsfm.camera import from_homogeneous, to_homogeneous
+from torchsfm.camera import FOCAL_PRIOR, from_homogeneous, to_homogeneous
 from torchsfm.config import Config, HarrisConfig, RansacConfig
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError
@@ -31,7 +31,6 @@ from torchsfm.pipeline import Progress
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
 VERIFY_BATCH = 32  # view pairs per batched verification call
-FOCAL_PRIOR = 1.2  # × the larger image side: the search's centre without K (a common camera's field of view)
 
 
 @dataclass

@@ -367,11 +367,11 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     a body's pieces is pulled towards them and explains some. Then the last fit's excess is raised
     by the depth order (:func:`with_depth_order`) and the cutting goes on until it cuts nothing
     more: only then, for a pose fitted together with a body it explains misplaces infinity
-    (measured on a synthetic scene of two bodies: with 20 of a body's tracks among the scene's 202,
-    the check put 33 background tracks behind the cameras and cut a piece of 18). The cut pieces are merged into
-    bodies by :func:`merge_clusters` over their own links and labelled after the other motions —
-    those a rigid motion of their own explains, over the frames their tracks span, to within the
-    tracker's noise (:func:`noise_explained`; measured on KT3DMoSeg, a 1 px bound on the median
+    (measured on a synthetic scene of two bodies: with 20 of a body's tracks among the scene's
+    202, the check put 33 background tracks behind the cameras and cut a piece of 18). The cut
+    pieces are merged into bodies by :func:`merge_clusters` over their own links and labelled
+    after the other motions — those a rigid motion of their own explains, over the frames their
+    tracks span, to within the tracker's noise (:func:`noise_explained`; measured on KT3DMoSeg, a 1 px bound on the median
     labelled whole groups of cars driving together outliers); the others are outliers (-1).
     Nothing is cut when fewer than 12 scene tracks would remain. When pieces were cut, the scene
     as it now stands judges every motion once more (:func:`join_explained`).

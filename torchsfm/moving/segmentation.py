@@ -291,9 +291,7 @@ def with_depth_order(excess: Tensor, tracks: Tensor, visible: Tensor, scene: Ten
     pairs; NaN kept. Only for a scene with parallax: without it the pose's translation is noise."""
     if not has_parallax(plane_residuals(tracks, visible, scene, pairs), scene, config):
         return excess
-    seen = pairs_seen(visible, pairs)
-    floor = torch.tensor(config.scene_tolerance, dtype=tracks.dtype, device=tracks.device)
-    behind = beyond_infinity(tracks, visible, scene, pairs) / _bound(floor, seen, seen, config)
+    behind = beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)
     return torch.where(excess.isnan(), excess, torch.maximum(excess, behind))
 
 
@@ -349,6 +347,13 @@ def pairs_seen(visible: Tensor, pairs: Tensor) -> Tensor:
 def _bound(sigma: Tensor, dof: Tensor, terms: Tensor, config: SegmentationConfig) -> Tensor:
     """:func:`rms_bound` of σ with the scene's significance and tolerance, per track."""
     return rms_bound(sigma.square(), dof, terms, config.scene_significance, config.scene_tolerance)
+
+
+def _noise_bound(seen: Tensor, config: SegmentationConfig) -> Tensor:
+    """(N,) the RMS that noise at the tracker's floor (``config.scene_tolerance``) stays within,
+    per track, over the (N,) frame pairs it is seen in (:func:`_bound` with σ the floor)."""
+    floor = torch.tensor(config.scene_tolerance, dtype=torch.float64, device=seen.device)
+    return _bound(floor, seen, seen, config)
 
 
 def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor, affinity: Tensor,
@@ -498,8 +503,7 @@ def noise_explained(tracks: Tensor, visible: Tensor, members: Tensor, config: Se
         pairs = frame_pairs(visible[:, member])
         rms, judged = track_residuals(tracks, visible, member[None], pairs)
         seen = pairs_seen(visible, pairs)
-        noise = _bound(torch.tensor(config.scene_tolerance, dtype=tracks.dtype), seen, seen, config)
-        verdicts.append(torch.where(judged & member, rms / noise, torch.nan).nanmedian(-1).values <= 1)
+        verdicts.append(torch.where(judged & member, rms / _noise_bound(seen, config), torch.nan).nanmedian(-1).values <= 1)
     return torch.cat(verdicts)
 
 

@@ -63,6 +63,19 @@ def test_strength_measure_is_symmetric_in_the_two_images():
     assert_close(forward, backward, rtol=1e-12, atol=1e-12)
 
 
+def test_strength_measure_in_float32_agrees_with_float64_far_from_the_image_origin():
+    """Corners a few pixels apart at x ≈ 700 px (a 768-wide image's right edge): distances taken
+    as sqrt(|a|² + |b|² - 2a·b) lose their digits there in float32 (SM was 9 % off here)."""
+    points1, points2, candidates, _ = _synthetic_candidates(seed=2)
+    generator = torch.Generator().manual_seed(3)
+    points1, points2 = points1 * 0.1 + 700, points2 * 0.1 + 650  # 20 px wide clusters
+    points2 = points2 + 0.05 * torch.randn(points2.shape, generator=generator, dtype=torch.float64)
+    config = MatchingConfig(neighbourhood_radius=80)
+    reference = strength_measure(points1, points2, candidates, config)
+    single = CandidateMatches(index1=candidates.index1, index2=candidates.index2, score=candidates.score.float(), ncc=torch.empty(0))
+    assert_close(strength_measure(points1.float(), points2.float(), single, config), reference.float(), rtol=1e-4, atol=1e-6)
+
+
 @pytest.mark.parametrize("mode", ["some_winners", "winner_take_all"])
 def test_relaxation_prefers_the_geometrically_consistent_candidates(mode):
     points1, points2, candidates, n = _synthetic_candidates(seed=1)

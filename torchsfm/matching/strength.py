@@ -64,16 +64,19 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
                 near[tile[rows, 1] + dy, tile[rows, 0] + dx] = True
         cols = torch.nonzero(near[tile[:, 1] + 1, tile[:, 0] + 1]).flatten()
         ci, cj = i[cols], j[cols]
-        d1 = torch.cdist(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
-        d2 = torch.cdist(points2[j[rows]], points2[cj])  # (R, C): d(m2j, n2l)
+        # (R, C): d(m1i, n1k) and d(m2j, n2l) for every nearby candidate (k, l), from the differences:
+        # through |a|² + |b|² - 2a·b (cdist's default) float32 loses the digits of near neighbours
+        d1 = torch.cdist(points1[i[rows]], points1[ci], compute_mode="donot_use_mm_for_euclid_dist")
+        d2 = torch.cdist(points2[j[rows]], points2[cj], compute_mode="donot_use_mm_for_euclid_dist")
         neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
                      & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))
-        r_index, c_index = torch.nonzero(neighbour, as_tuple=True)  # the E neighbouring pairs
+        r_index, c_index = torch.nonzero(neighbour, as_tuple=True)  # the neighbouring pairs
         d1, d2 = d1[r_index, c_index], d2[r_index, c_index]
         dist = 0.5 * (d1 + d2)
         r = (d1 - d2).abs() / dist.clamp_min(1e-12)
-        value = torch.where(r < config.relative_distance_threshold,
-                            c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist), 0.0)  # (E,)
+        alike = torch.nonzero(r < config.relative_distance_threshold).flatten()  # δ > 0: the E that count
+        r_index, c_index, r, dist = r_index[alike], c_index[alike], r[alike], dist[alike]
+        value = c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist)  # (E,)
         R = rows.numel()
         points_k, local_k = torch.unique(ci, return_inverse=True)  # the columns name few corners of each image:
         points_l, local_l = torch.unique(cj, return_inverse=True)  # tables over those, not over all N1, N2

@@ -162,13 +162,9 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         chosen = torch.zeros(index.numel(), dtype=torch.bool, device=index.device)
         chosen[torch.randperm(index.numel(), generator=generator, device=generator.device)[:config.max_tracks].to(index.device)] = True
         index, left_out = index[chosen], index[~chosen]
-    similarity, kinds = None, config.kinds_for(tracks.shape[0])
-    for _ in range(1 + config.guided_rounds):  # the round's hypotheses shared equally by the kinds
-        fits = [MODELS[name](tracks[:, index], visible[:, index], config.hypotheses // len(kinds), config, generator, similarity)
-                for name in kinds]
-        preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
-        similarity = tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1),
-                                         tracks.dtype)
+    similarity = None
+    for _ in range(1 + config.guided_rounds):
+        similarity = preference_similarity(tracks[:, index], visible[:, index], config, generator, similarity)
     explained = explained_tracks(similarity, config)
     if int(explained.sum()) < MIN_VECTORS:
         raise NotEnoughDataError(f"only {int(explained.sum())} tracks fit any rigid motion (needs {MIN_VECTORS})")
@@ -318,7 +314,9 @@ def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tenso
     low, high = extent.amin(0), extent.amax(0)
     K = intrinsics(FOCAL_PRIOR * float((high - low).max()), (low + high) / 2).to(tracks.dtype)
     n1, n2 = pixels_to_normalized(x1, K), pixels_to_normalized(x2, K)
-    R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_fundamental(F, K, K)), n1, n2, inliers.to(tracks.dtype))
+    own = torch.nonzero(scene)[:, 0]  # the pose's vote over the scene's tracks only (depths for 4 poses × all pairs × all N: 215 MB on KITTI 06)
+    R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_fundamental(F, K, K)), n1[:, own], n2[:, own],
+                          inliers[:, own].to(tracks.dtype))
     behind = (-K[0, 0] * parallax_from_infinity(R, t, n1, n2) / math.sqrt(2)).clamp_min(0)
     counted = seen & usable[:, None]
     return (torch.where(counted, behind.square(), 0.0).sum(0) / counted.sum(0).clamp_min(1)).sqrt()
@@ -689,6 +687,19 @@ def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: Segmen
     return residual, defined.scatter(1, sample, False)
 
 
+def preference_similarity(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
+                          guide: Tensor | None) -> Tensor:
+    """(N, N) Tanimoto similarity of the (F, N, 2) tracks' preferences over one round of
+    hypotheses, shared equally by the configured kinds of model (sampled near the ``guide``
+    similarity's strongest links from the round before, if given). A function of its own so
+    that the round's residual tables are freed before the next round's are made."""
+    kinds = config.kinds_for(tracks.shape[0])
+    fits = [MODELS[name](tracks, visible, config.hypotheses // len(kinds), config, generator, guide) for name in kinds]
+    preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
+    del fits
+    return tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1), tracks.dtype)
+
+
 def ordered_preferences(residuals: Tensor, defined: Tensor, config: SegmentationConfig) -> tuple[Tensor, Tensor]:
     """(H, N) residuals -> (N, H) bool preferences, each track preferring the ``preference_share``
     of its defined hypotheses with the smallest residuals (ordered-residual kernel), and the
@@ -719,9 +730,9 @@ def tanimoto_similarity(preference: Tensor, mask: Tensor, dtype: torch.dtype) ->
     preference, mask = binary_operand(preference), binary_operand(mask)  # each converted once
     inner = binary_products(preference, preference)
     own = binary_products(preference, mask)  # |p_i| restricted to the hypotheses defined for j
-    denominator = own + own.T - inner
-    similarity = torch.where(denominator > 0, inner / denominator.clamp_min(1.0), 0.0).to(dtype)
-    return similarity.fill_diagonal_(0.0)
+    denominator = (own + own.T).sub_(inner)  # >= inner (p_j lies within j's defined mask): 0 only where inner is
+    del own  # (N, N) tables: at 3000 tracks each is 36 MB, so they are made in place where they can be
+    return inner.div_(denominator.clamp_min_(1.0)).to(dtype).fill_diagonal_(0.0)
 
 
 def binary_operand(x: Tensor) -> Tensor:

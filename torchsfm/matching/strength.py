@@ -56,12 +56,11 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     tile_id = tile[:, 1] * columns_count + tile[:, 0]
     order = torch.argsort(tile_id, stable=True)
     grid_shape = (int(tile[:, 1].max()) + 3, columns_count + 2)  # one tile of margin on each side
+    around = torch.arange(3, device=points1.device)
     for start in range(0, M, _ROW_BLOCK):
         rows = order[start:start + _ROW_BLOCK]
         near = torch.zeros(grid_shape, dtype=torch.bool, device=points1.device)
-        for dy in (0, 1, 2):
-            for dx in (0, 1, 2):
-                near[tile[rows, 1] + dy, tile[rows, 0] + dx] = True
+        near[tile[rows, 1, None, None] + around[:, None], tile[rows, 0, None, None] + around] = True  # the 3 × 3 tiles around each row's
         cols = torch.nonzero(near[tile[:, 1] + 1, tile[:, 0] + 1]).flatten()
         ci, cj = i[cols], j[cols]
         # (R, C): d(m1i, n1k) and d(m2j, n2l) for every nearby candidate (k, l), from the differences:
@@ -107,29 +106,29 @@ def relaxation(candidates: CandidateMatches, strength: Tensor, num_points: tuple
     config = config or MatchingConfig()
     i, j = candidates.index1, candidates.index2
     N1, N2 = num_points
-    active = strength > config.strength_threshold
-    accepted = torch.zeros_like(active)
+    active = torch.nonzero(strength > config.strength_threshold)[:, 0]  # the candidates still in play
+    accepted = torch.zeros_like(strength, dtype=torch.bool)
     for _ in range(config.max_relaxation_iterations):
-        score = torch.where(active, strength, float("-inf"))
-        best1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, i, score, "amax")
-        best2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, j, score, "amax")
-        potential = active & (score == best1[i]) & (score == best2[j])
+        ai, aj, score = i[active], j[active], strength[active]
+        best1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, ai, score, "amax")
+        best2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, aj, score, "amax")
+        potential = (score == best1[ai]) & (score == best2[aj])
         if not bool(potential.any()):
             break
         if config.relaxation == "some_winners":
-            second1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, i, torch.where(score == best1[i], float("-inf"), score), "amax")
-            second2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, j, torch.where(score == best2[j], float("-inf"), score), "amax")
-            runner_up = torch.maximum(second1[i], second2[j]).clamp_min(0.0)
+            second1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, ai, torch.where(score == best1[ai], float("-inf"), score), "amax")
+            second2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, aj, torch.where(score == best2[aj], float("-inf"), score), "amax")
+            runner_up = torch.maximum(second1[ai], second2[aj]).clamp_min(0.0)
             ambiguity = 1 - runner_up / score.clamp_min(1e-30)  # eq. 3.2.10
             selected = potential & _in_top_fraction(score, potential, config.alpha) & _in_top_fraction(ambiguity, potential, config.alpha)
             if not bool(selected.any()):  # the two tables share no top entry: take the strongest
                 selected = potential & (score == score[potential].max())
         else:
             selected = potential
-        accepted |= selected
-        used1 = torch.zeros(N1, dtype=torch.bool, device=i.device).index_fill_(0, i[selected], True)
-        used2 = torch.zeros(N2, dtype=torch.bool, device=j.device).index_fill_(0, j[selected], True)
-        active &= ~used1[i] & ~used2[j]
+        accepted[active[selected]] = True
+        used1 = torch.zeros(N1, dtype=torch.bool, device=i.device).index_fill_(0, ai[selected], True)
+        used2 = torch.zeros(N2, dtype=torch.bool, device=j.device).index_fill_(0, aj[selected], True)
+        active = active[~used1[ai] & ~used2[aj]]
     return i[accepted], j[accepted]
 
 

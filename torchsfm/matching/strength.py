@@ -60,7 +60,7 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     for start in range(0, M, _ROW_BLOCK):
         rows = order[start:start + _ROW_BLOCK]
         near = torch.zeros(grid_shape, dtype=torch.bool, device=points1.device)
-        near[tile[rows, 1, None, None] + around[:, None], tile[rows, 0, None, None] + around] = True  # the 3 × 3 tiles around each row's
+        near[tile[rows, 1, None, None] + around[:, None], tile[rows, 0, None, None] + around] = True  # each row's tile and its 8 neighbours (margin-shifted)
         cols = torch.nonzero(near[tile[:, 1] + 1, tile[:, 0] + 1]).flatten()
         ci, cj = i[cols], j[cols]
         # (R, C): d(m1i, n1k) and d(m2j, n2l) for every nearby candidate (k, l), from the differences:

@@ -22,6 +22,29 @@ def scene(seed: int, objects: int, **kwargs):
     return synthetic_moving_scene(seed, num_frames=5, num_objects=objects, object_points=60, noise=0.5, **kwargs)
 
 
+def _box(count: int, low: list[float], high: list[float], generator: torch.Generator) -> torch.Tensor:
+    """(count, 3) points uniform in the box low..high (metres)."""
+    low_, high_ = torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64)
+    return low_ + torch.rand(count, 3, generator=generator, dtype=torch.float64) * (high_ - low_)
+
+
+def _yaw(angle: torch.Tensor) -> torch.Tensor:
+    """(F, 3, 3) rotations about the vertical axis by (F,) radians."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    R = torch.zeros(angle.numel(), 3, 3, dtype=torch.float64)
+    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1, -s, c
+    return R
+
+
+def _seen(points: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, N, 3) camera-frame points -> (F, N, 2) pixels (700 px focal length, 1280 × 480 image,
+    0.3 px noise) and (F, N) visibility (in front, inside the image)."""
+    pixels = 700 * points[..., :2] / points[..., 2:] + torch.tensor([640.0, 240.0], dtype=torch.float64)
+    pixels = pixels + 0.3 * torch.randn(pixels.shape, generator=generator, dtype=torch.float64)
+    visible = (pixels >= 0).all(-1) & (pixels[..., 0] < 1280) & (pixels[..., 1] < 480) & (points[..., 2] > 0)
+    return pixels, visible
+
+
 def overtaking_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A camera driving forward 0.5 m per frame past 300 static points, and a body of 80 points
     overtaking it at twice its speed (700 px focal length, 1280 × 480 image, 0.3 px noise; a
@@ -31,19 +54,11 @@ def overtaking_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.T
     points behind the cameras (the body's point X(f) = X + f·v is seen like the static point
     −X·c/(v − c), c the camera's speed): only the depths' sign tells them apart."""
     generator = torch.Generator().manual_seed(seed)
-
-    def box(count: int, low: list[float], high: list[float]) -> torch.Tensor:
-        low_, high_ = torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64)
-        return low_ + torch.rand(count, 3, generator=generator, dtype=torch.float64) * (high_ - low_)
-
     forward = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     step = torch.arange(frames, dtype=torch.float64)[:, None, None]
-    static = box(300, [-12, -4, 12], [12, 3, 40]).expand(frames, -1, -1)
-    body = box(80, [1.5, 0.0, 7], [3.5, 1.5, 10]) + 2 * 0.5 * step * forward
-    points = torch.cat([static, body], 1) - 0.5 * step * forward
-    pixels = 700 * points[..., :2] / points[..., 2:] + torch.tensor([640.0, 240.0], dtype=torch.float64)
-    pixels = pixels + 0.3 * torch.randn(pixels.shape, generator=generator, dtype=torch.float64)
-    visible = (pixels >= 0).all(-1) & (pixels[..., 0] < 1280) & (pixels[..., 1] < 480)
+    static = _box(300, [-12, -4, 12], [12, 3, 40], generator).expand(frames, -1, -1)
+    body = _box(80, [1.5, 0.0, 7], [3.5, 1.5, 10], generator) + 2 * 0.5 * step * forward
+    pixels, visible = _seen(torch.cat([static, body], 1) - 0.5 * step * forward, generator)
     return pixels, visible, torch.cat([torch.zeros(300, dtype=torch.long), torch.ones(80, dtype=torch.long)])
 
 
@@ -59,6 +74,40 @@ def test_a_body_overtaking_the_camera_is_not_taken_for_the_static_scene():
             labels = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(seed)).labels
             assert bool((labels[judged & (truth == 0)] == 0).all()), (scene_seed, seed)
             assert bool((labels[judged & (truth == 1)] != 0).all()), (scene_seed, seed)
+
+
+def panning_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """A camera that only turns, following a truck that fills most of the view: 120 road points
+    8-40 m ahead (static), and a 5 × 3.5 × 3 m truck of 160 points driving 0.3 m per frame across
+    and 0.3 m towards the camera, turning 4° per frame: (F, N, 2) pixels, (F, N) visibility, (N,)
+    labels (0 the road, 1 the truck). The truck covers more of the image than the road and has
+    parallax; the road moves by one rotation homography per frame pair."""
+    generator = torch.Generator().manual_seed(seed)
+    step = torch.arange(frames, dtype=torch.float64)
+    road = _box(120, [-20, 1.5, 8], [20, 3, 40], generator).expand(frames, -1, -1)
+    body = _box(160, [-2.5, -2.5, -1.5], [2.5, 1.0, 1.5], generator)  # about the truck's centre
+    centre = torch.stack([0.3 * step, 0 * step, 7 - 0.3 * step], -1)
+    truck = body @ _yaw(torch.deg2rad(-4 * step)).transpose(1, 2) + centre[:, None]
+    camera = _yaw(torch.atan2(0.3 * step, torch.full_like(step, 8.5)))  # the camera's orientation: turned towards the truck
+    pixels, visible = _seen(torch.cat([road, truck], 1) @ camera, generator)  # camera-frame points Rᵀ X
+    return pixels, visible, torch.cat([torch.zeros(120, dtype=torch.long), torch.ones(160, dtype=torch.long)])
+
+
+@pytest.mark.xfail(strict=True, reason="known limit (issue 10, Hopkins155 truck1): the scene is the motion covering most of "
+                   "the image; a turning camera's world that an object out-covers is taken for a body")
+def test_the_world_of_a_turning_camera_is_the_scene_though_an_object_covers_more():
+    """:func:`panning_scene`: the truck covers more grid cells (36 against the road's 28) and has
+    parallax; the road moves by one rotation homography per frame pair. The road should be label
+    0 and the truck a body; today the truck is taken for the scene. Tried: a rule preferring a
+    motion without parallax whose homographies have eigenvalues of one modulus (a rotation's)
+    fixed this scene and truck1, but also fired on a flat patch pasted and shifted across
+    Fountain-P11 (a surface sliding parallel to itself has eigenvalues 1, 1, 1 as a rotation
+    does), so it was not kept."""
+    tracks, visible, truth = panning_scene(0)
+    judged = visible.sum(0) >= 3
+    labels = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(0)).labels
+    assert bool((labels[judged & (truth == 0)] == 0).all())
+    assert bool((labels[judged & (truth == 1)] > 0).all())
 
 
 def test_misclassification_matches_labels_one_to_one():

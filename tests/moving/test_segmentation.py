@@ -3,7 +3,6 @@ gaps, degenerate cases, bad input, and real labelled tracks (Hopkins155, KT3DMoS
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import pytest
@@ -94,82 +93,21 @@ def panning_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.Tens
     return pixels, visible, torch.cat([torch.zeros(120, dtype=torch.long), torch.ones(160, dtype=torch.long)])
 
 
-def sliding_board_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The camera of :func:`overtaking_scene` driving forward 0.5 m per frame past 300 static
-    points, and a flat board of 80 points 8 m ahead moving with it and 0.3 m per frame sideways:
-    relative to the camera the board only slides parallel to itself, which a long-focus camera
-    turning explains. (F, N, 2) pixels, (F, N) visibility, (N,) labels (0 static, 1 the board)."""
-    generator = torch.Generator().manual_seed(seed)
-    step = torch.arange(frames, dtype=torch.float64)[:, None, None]
-    static = _box(300, [-12, -4, 12], [12, 3, 40], generator).expand(frames, -1, -1)
-    board = _box(80, [-2.5, -1.0, 8], [0.0, 1.0, 8], generator) + step * torch.tensor([0.3, 0.0, 0.5], dtype=torch.float64)
-    points = torch.cat([static, board], 1) - 0.5 * step * torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    pixels, visible = _seen(points, generator)
-    return pixels, visible, torch.cat([torch.zeros(300, dtype=torch.long), torch.ones(80, dtype=torch.long)])
-
-
-def test_the_world_of_a_turning_camera_is_the_scene_though_an_object_covers_more(monkeypatch):
-    """:func:`panning_scene`: the truck covers more grid cells (36-39 against the road's 27-28)
-    and has parallax, so coverage alone takes it for the scene (checked: with the turning-camera
-    rule switched off the truck is label 0); the road, which one rotation of the camera per frame
-    pair explains, is label 0 and the truck a body, at every scene and seed here (Hopkins155
-    truck1 fails the same way without the rule)."""
-    from torchsfm.moving import segmentation
-
-    for scene_seed in range(3):
-        tracks, visible, truth = panning_scene(scene_seed)
-        judged = visible.sum(0) >= 3
-        for seed in range(2):
-            labels = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(seed)).labels
-            assert bool((labels[judged & (truth == 0)] == 0).all()), (scene_seed, seed)
-            assert bool((labels[judged & (truth == 1)] > 0).all()), (scene_seed, seed)
-    monkeypatch.setattr(segmentation, "turning_camera_scene", lambda *args: None)
+@pytest.mark.xfail(strict=True, reason="known limit (issue 10, Hopkins155 truck1): the scene is the motion covering most of "
+                   "the image; a turning camera's world that an object out-covers is taken for a body")
+def test_the_world_of_a_turning_camera_is_the_scene_though_an_object_covers_more():
+    """:func:`panning_scene`: the truck covers more grid cells (36 against the road's 28) and has
+    parallax; the road moves by one rotation homography per frame pair. The road should be label
+    0 and the truck a body; today the truck is taken for the scene. Tried: a rule preferring a
+    motion without parallax whose homographies have eigenvalues of one modulus (a rotation's)
+    fixed this scene and truck1, but also fired on a flat patch pasted and shifted across
+    Fountain-P11 (a surface sliding parallel to itself has eigenvalues 1, 1, 1 as a rotation
+    does), so it was not kept."""
+    tracks, visible, truth = panning_scene(0)
+    judged = visible.sum(0) >= 3
     labels = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(0)).labels
-    assert bool((labels[judged & (truth == 1)] == 0).all())
-
-
-def test_a_small_flat_object_a_rotation_explains_does_not_take_the_scene():
-    """:func:`sliding_board_scene`: the board has no parallax and a camera rotation explains it
-    to the noise floor (all but the extent condition of
-    :func:`~torchsfm.moving.segmentation.turning_camera_scene` hold), but it covers less than
-    half the scene's cells: the static points stay label 0 and the board is a body."""
-    from torchsfm.moving.segmentation import frame_pairs, grid_coverage, rotation_residuals
-
-    tolerance = SegmentationConfig().scene_tolerance
-    for scene_seed in range(2):
-        tracks, visible, truth = sliding_board_scene(scene_seed)
-        members = truth[None] == torch.arange(2)[:, None]
-        assert float(rotation_residuals(tracks, visible, members[1:], frame_pairs(visible))[0]) <= tolerance
-        coverage = grid_coverage(tracks, visible, truth, 2)
-        assert int(2 * coverage[1]) < int(coverage[0])
-        judged = visible.sum(0) >= 3
-        labels = segment_motions(tracks, visible, generator=torch.Generator().manual_seed(0)).labels
-        assert bool((labels[judged & (truth == 0)] == 0).all()), scene_seed
-        assert bool((labels[judged & (truth == 1)] > 0).all()), scene_seed
-
-
-def test_rotation_residuals_vanish_for_a_turning_camera_and_not_for_an_approached_plane():
-    """Noise-free tracks of 40 points on a wall 10 m ahead, 700 px focal length, principal point
-    at the centre of a 1600 × 600 image whose corners other tracks reach (the principal point is
-    taken at the centre of all tracks' extent): a camera turning 10° (about the vertical axis) and
-    3° (about the optical axis) is explained to 0.1 px (float64; measured 3·10⁻⁴ px, what the
-    focal length search leaves); the camera moving 1 m towards the wall (one homography, no
-    rotation) leaves the best rotation beyond the 1 px noise floor (measured 28 px)."""
-    from torchsfm.geometry.rotation import axis_angle_to_rotation
-    from torchsfm.moving.segmentation import rotation_residuals
-
-    generator = torch.Generator().manual_seed(0)
-    points = _box(40, [-8, -4, 10], [8, 4, 10], generator)
-    turn = axis_angle_to_rotation(torch.tensor([0.0, math.radians(10), math.radians(3)], dtype=torch.float64))
-    cases = ((torch.stack([points, points @ turn.T]), 0.0, 0.1),
-             (torch.stack([points, points - torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)]), 1.0, math.inf))
-    corners = torch.tensor([[0.0, 0.0], [1600.0, 600.0]], dtype=torch.float64).expand(2, -1, -1)
-    members = torch.arange(42) < 40
-    for moved, low, high in cases:
-        pixels = 700 * moved[..., :2] / moved[..., 2:] + torch.tensor([800.0, 300.0], dtype=torch.float64)
-        tracks = torch.cat([pixels, corners], 1)
-        residual = float(rotation_residuals(tracks, torch.ones(2, 42, dtype=torch.bool), members[None], torch.tensor([[0, 1]]))[0])
-        assert low <= residual <= high, residual
+    assert bool((labels[judged & (truth == 0)] == 0).all())
+    assert bool((labels[judged & (truth == 1)] > 0).all())
 
 
 def test_misclassification_matches_labels_one_to_one():

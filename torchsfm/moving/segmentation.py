@@ -41,10 +41,7 @@ minimal-sample models:
    camera every rigid body is an equally valid "world" (measured on the translating-camera
    sequences of Hopkins155: a better choice than the largest motion or the motion the thesis'
    rigidity votes reject least); callers holding better evidence choose another label as the
-   scene (``sizes`` and ``coverage`` are per label). One piece of geometry overrides it: a
-   motion without parallax that moves like a rotation of the camera, where the motion covering
-   most has parallax, is the world of a turning camera with an object filling the view in front
-   of it (:func:`turning_camera_scene`).
+   scene (``sizes`` and ``coverage`` are per label).
 6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
    it does not explain are cut out as bodies, the scene refitted without them until it cuts
    nothing more (:func:`settle_scene`, :func:`scene_excess`); then again with the depth order
@@ -53,8 +50,7 @@ minimal-sample models:
    behind it, which every epipolar and projective test accepts).
    Where that leaves another motion both larger than the scene and covering more of the image,
    that motion is made the scene and settled in turn (a scene first taken together with a large
-   object loses the background it did not explain; a scene that only lost coverage, or that a
-   turning camera explains, stays).
+   object loses the background it did not explain; a scene that only lost coverage stays).
    Given the number of motions, the settled partition is kept when it has that many. With
    fewer, the motion whose cut in two gains most is cut until it has that many
    (:func:`split_least_rigid`: two bodies taken for one); that partition or the pieces cut into
@@ -82,7 +78,6 @@ from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamen
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
 from torchsfm.geometry.homography import homography_dlt, transfer_error
 from torchsfm.geometry.normalization import hartley_normalize
-from torchsfm.geometry.rotation import nearest_rotation
 from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.static_tracks import rms_bound, rigid_group
@@ -93,8 +88,6 @@ from torchsfm.robust.samplers import draws_without_replacement, resolve_generato
 
 SAMPLE_SIZE = 8
 COVERAGE_GRID = 8
-ROTATION_FOCALS = 13  # focal lengths tried by rotation_residuals, 1.26 apart
-FOCAL_REFINEMENTS = 20  # golden-section steps after them (the bracket shrinks 0.618× a step)
 CHUNK_ELEMENTS = 2**21  # numbers per hypothesis chunk: memory bounded for thousands of tracks; 16 MB of float64,
 # under glibc's 32 MB ceiling for serving freed blocks again instead of fresh (page-faulting) maps
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
@@ -194,7 +187,7 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
             found = min(found, direct, key=lambda partition: normalized_cut(affinity, partition))
         clusters = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
         clusters[index] = found
-        labels = scene_first(tracks, visible, clusters, config, generator)
+        labels = scene_first(tracks, visible, clusters)
         if count is not None:
             return labels
         settled = settle_scene(tracks, visible, labels, piece_of, affinity, index, config, generator)
@@ -204,11 +197,8 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         dominant = (coverage > coverage[0]) & (sizes > sizes[0])
         if not bool(dominant.any()):
             return settled
-        # settling left a motion both larger than the scene and covering more of the image: it is the scene,
-        # unless the scene is what a turning camera sees in front of it
+        # settling left a motion both larger than the scene and covering more of the image: it is the scene
         scene = int(torch.where(dominant, coverage, -1).argmax())
-        if turning_camera_scene(tracks, visible, settled, scene, coverage, config, generator) == 0:
-            return settled
         rechosen = torch.where(settled == scene, 0, torch.where(settled == 0, scene, settled))
         return settle_scene(tracks, visible, rechosen, piece_of, affinity, index, config, generator)
 
@@ -233,113 +223,17 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
                               eigenvalues=eigenvalues, affinity=affinity, clustered=index, pieces=piece_of)
 
 
-def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor, config: SegmentationConfig,
-                generator: torch.Generator) -> Tensor:
+def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor) -> Tensor:
     """(N,) cluster labels 0..C-1 (largest first; -1 none) relabelled so that the static scene
-    is 0: the cluster covering most grid cells over all frames (ties: the most tracks), unless a
-    turning camera explains another one better (:func:`turning_camera_scene`)."""
+    — the cluster covering most grid cells over all frames, ties to the most tracks — is 0."""
     count = int(clusters.max()) + 1
     coverage = grid_coverage(tracks, visible, clusters, count)
     sizes = torch.bincount(clusters[clusters >= 0], minlength=count)
     static = int((coverage * (clusters.numel() + 1) + sizes).argmax())
-    turning = turning_camera_scene(tracks, visible, clusters, static, coverage, config, generator)
-    static = static if turning is None else turning
     order = torch.tensor([static, *(c for c in range(count) if c != static)], device=clusters.device)
     relabel = torch.empty_like(order)
     relabel[order] = torch.arange(count, device=clusters.device)
     return torch.where(clusters >= 0, relabel[clusters.clamp_min(0)], -1)
-
-
-def turning_camera_scene(tracks: Tensor, visible: Tensor, labels: Tensor, leader: int, coverage: Tensor,
-                         config: SegmentationConfig, generator: torch.Generator) -> int | None:
-    """The motion to take as the static scene instead of ``leader``, or None: (N,) labels 0..C-1
-    (-1 none), (C,) their :func:`grid_coverage`.
-
-    A camera that only turns sees the whole static world move by a rotation of its rays,
-    whatever the depths; an object in front of it shows parallax unless it is flat, and a flat
-    object's homographies are a rotation's only if it keeps its distance and attitude to the
-    camera. So where the leader (the motion covering most of the image) has parallax, a motion
-    without parallax that one rotation of the camera per frame pair explains to within the
-    tracker's noise floor (``config.scene_tolerance``, the bound of :func:`has_parallax`;
-    :func:`rotation_residuals`), that spans a comparable part of the view (at least half the
-    leader's cells) and that the leader's rigid motion does not explain (median
-    :func:`scene_excess` beyond 1: a rival world, not a flat piece of the leader's), is the
-    static world of a turning camera and the leader an object moving in front of it (Hopkins155
-    truck1: a truck filling the view of a panning camera). The extent keeps a car driving ahead
-    at the camera's speed — it turns with the camera and keeps its distance, so it too moves by a
-    rotation — from taking the scene's place. A homography alone does not tell a rotation from a
-    flat object moving (measured: a patch pasted across Fountain-P11 fits its homographies to
-    0.02 px, the best rotation only to 4.0 px)."""
-    count = coverage.numel()
-    members = labels[None] == torch.arange(count, device=labels.device)[:, None]
-    pairs = frame_pairs(visible)
-    plane, judged = track_residuals(tracks, visible, members, pairs, "homography")
-    median = torch.where(members & judged, plane, torch.nan).nanmedian(-1).values  # (C,)
-    if not bool(median[leader] > config.scene_tolerance):
-        return None
-    flat = torch.nonzero((median <= config.scene_tolerance) & (2 * coverage >= coverage[leader]))[:, 0]
-    if flat.numel() == 0:
-        return None
-    rotation = rotation_residuals(tracks, visible, members[flat], pairs)
-    if not bool((rotation <= config.scene_tolerance).any()):
-        return None
-    candidate = int(flat[rotation.argmin()])
-    excess = scene_excess(tracks, visible, members[leader], pairs, config, generator)
-    return candidate if bool(excess[members[candidate]].nanmedian() > 1) else None
-
-
-def rotation_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
-    """(C,) how well a camera that only turns explains each of the (C, N) bool ``members`` track
-    sets: the median over a set's tracks of their RMS distance (pixels) over the (P, 2) frame
-    pairs to where one rotation per pair carries them (:func:`_turned_rms`), at the focal length
-    shared by the pairs that explains the set best — ``ROTATION_FOCALS`` log-spaced over ¼..4 ×
-    the prior of a camera without calibration (``FOCAL_PRIOR`` × the larger side of all tracks'
-    extent; fields of view of about 12° to 120°), then ``FOCAL_REFINEMENTS`` golden-section steps
-    between the best one's neighbours. The principal point is taken at the extent's centre. NaN
-    where a set is seen in no pair."""
-    a, b = pairs[:, 0], pairs[:, 1]
-    seen = members[:, None] & (visible[a] & visible[b])[None]  # (C, P, N)
-    extent = tracks[visible]
-    low, high = extent.amin(0), extent.amax(0)
-    x1, x2 = tracks[a] - (low + high) / 2, tracks[b] - (low + high) / 2  # (P, N, 2) about the centre
-    prior = math.log(FOCAL_PRIOR * float((high - low).max()))
-    grid = prior + torch.linspace(-math.log(4), math.log(4), ROTATION_FOCALS, dtype=tracks.dtype, device=tracks.device)
-    C = members.shape[0]
-    rms = _turned_rms(x1, x2, seen, grid.exp().expand(C, -1))  # (C, G)
-    best = rms.nan_to_num(torch.inf).argmin(-1)
-    lower = grid[(best - 1).clamp_min(0)]
-    upper = grid[(best + 1).clamp_max(ROTATION_FOCALS - 1)]
-    ratio = (math.sqrt(5) - 1) / 2
-    for _ in range(FOCAL_REFINEMENTS):  # golden section on log f, every set at once
-        inner = torch.stack([upper - ratio * (upper - lower), lower + ratio * (upper - lower)], -1)  # (C, 2)
-        value = _turned_rms(x1, x2, seen, inner.exp()).nan_to_num(torch.inf)
-        left = value[:, 0] <= value[:, 1]
-        upper, lower = torch.where(left, inner[:, 1], upper), torch.where(left, lower, inner[:, 0])
-    refined = _turned_rms(x1, x2, seen, ((lower + upper) / 2).exp()[:, None])[:, 0]
-    return torch.fmin(refined, rms.gather(1, best[:, None])[:, 0])
-
-
-def _turned_rms(x1: Tensor, x2: Tensor, seen: Tensor, focal: Tensor) -> Tensor:
-    """(C, G) median over each set's tracks of their RMS distance (pixels) over the pairs between
-    the second position and the first turned by the pair's least-squares rotation of rays
-    (orthogonal Procrustes) at focal length ``focal`` (C, G): (P, N, 2) positions about the
-    principal point, (C, P, N) bool seen. A track turned behind the camera is infinitely far."""
-    f = focal[:, :, None, None, None]  # (C, G, 1, 1, 1)
-
-    def rays(x: Tensor) -> Tensor:  # (P, N, 2) -> (C, G, P, N, 3)
-        scaled = x / f
-        return torch.nn.functional.normalize(torch.cat([scaled, torch.ones_like(scaled[..., :1])], -1), dim=-1)
-
-    first, second = rays(x1), rays(x2)
-    weights = seen[:, None].to(x1.dtype)  # (C, 1, P, N)
-    R = nearest_rotation(torch.einsum("cgpn,cgpni,cgpnj->cgpij", weights, second, first))
-    turned = torch.einsum("cgpij,cgpnj->cgpni", R, first)
-    ahead = turned[..., 2] > 0
-    image = turned[..., :2] / torch.where(ahead, turned[..., 2], 1.0)[..., None] * f
-    distance = torch.where(ahead, (image - x2).norm(dim=-1), torch.inf)
-    counted = seen[:, None]  # (C, 1, P, N)
-    rms = (torch.where(counted, distance.square(), 0.0).sum(2) / counted.sum(2).clamp_min(1)).sqrt()  # (C, G, N)
-    return torch.where(counted.any(2), rms, torch.nan).nanmedian(-1).values
 
 
 def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
@@ -579,7 +473,7 @@ def split_least_rigid(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: T
     gain = torch.where(held, rms[:M], 0.0).sum(-1) / torch.where(held, split, 0.0).sum(-1).clamp_min(torch.finfo(rms.dtype).tiny)
     clusters = labels.clone()
     clusters[second[int(gain.argmax())]] = count
-    return scene_first(tracks, visible, clusters, config, generator)
+    return scene_first(tracks, visible, clusters)
 
 
 def partition_residual(tracks: Tensor, visible: Tensor, labels: Tensor) -> float:

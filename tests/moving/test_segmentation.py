@@ -12,6 +12,7 @@ from torchsfm import segment_motions
 from torchsfm.config import SegmentationConfig
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.evaluation import misclassification
+from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.testing import synthetic_moving_scene
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
@@ -30,10 +31,7 @@ def _box(count: int, low: list[float], high: list[float], generator: torch.Gener
 
 def _yaw(angle: torch.Tensor) -> torch.Tensor:
     """(F, 3, 3) rotations about the vertical axis by (F,) radians."""
-    c, s = torch.cos(angle), torch.sin(angle)
-    R = torch.zeros(angle.numel(), 3, 3, dtype=torch.float64)
-    R[:, 0, 0], R[:, 0, 2], R[:, 1, 1], R[:, 2, 0], R[:, 2, 2] = c, s, 1, -s, c
-    return R
+    return axis_angle_to_rotation(torch.stack([torch.zeros_like(angle), angle, torch.zeros_like(angle)], -1))
 
 
 def _seen(points: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:

@@ -49,25 +49,42 @@ class CoarseFeatures:
     valid: Tensor
 
 
-def coarse_features(greys: list[Tensor], config: PairsConfig) -> CoarseFeatures:
+def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | None = None) -> CoarseFeatures:
     """Harris corners and NCC patches of (1, H_v, W_v) grey images (uint8 or float in [0, 1])
-    reduced by one factor, the one that brings the largest to ``coarse_size`` (so that every view
-    is seen at one scale), a few views of one size at a time (no full-resolution float copy of
-    them all)."""
-    factor = max(1, round(max(max(grey.shape[-2:]) for grey in greys) / config.coarse_size))
+    reduced so that every view is seen at one scale (:func:`reduction_factors`), a few views of
+    one size and factor at a time (no full-resolution float copy of them all). ``focal``: (V,)
+    each view's focal length in pixels, where known."""
+    factors = reduction_factors(greys, config.coarse_size, focal)
     harris = HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1)
     positions: dict[int, Tensor] = {}
     patches: dict[int, Tensor] = {}
-    for views in same_size_batches(greys, 8):
-        small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
-        corners = detect_corners(small, harris)
-        for b, v in enumerate(views):
-            positions[v] = corners.of_image(b).double()
-            patches[v] = extract_patches(small[b], positions[v], config.patch_half_size)
+    for factor in sorted(set(factors)):
+        alike = [v for v in range(len(greys)) if factors[v] == factor]
+        for batch in same_size_batches([greys[v] for v in alike], 8):
+            views = [alike[b] for b in batch]
+            small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
+            corners = detect_corners(small, harris)
+            for b, v in enumerate(views):
+                positions[v] = (corners.of_image(b).double() + 0.5) * factor - 0.5  # pixel centres of the reduced image
+                patches[v] = extract_patches(small[b], corners.of_image(b).double(), config.patch_half_size)
     views = range(len(greys))
     patches_padded, valid = pad_rows([patches[v] for v in views])
-    points = (pad_rows([positions[v] for v in views])[0] + 0.5) * factor - 0.5  # pixel centres of the reduced image
-    return CoarseFeatures(points=points, patches=patches_padded, valid=valid)
+    return CoarseFeatures(points=pad_rows([positions[v] for v in views])[0], patches=patches_padded, valid=valid)
+
+
+def reduction_factors(greys: list[Tensor], coarse_size: int, focal: Tensor | None = None) -> list[int]:
+    """Per (1, H_v, W_v) image the integer factor it is reduced by for coarse matching. Without
+    focal lengths, one factor: the one that brings the largest image to about ``coarse_size``
+    px (one camera: every view at one scale). With each view's focal length (V,) in pixels, a
+    factor per view that brings every focal length to about one value — the one at which the
+    view with the longest focal length for its size has its long side at ``coarse_size`` — so
+    that views from several cameras or zoom settings are seen at one angular resolution, as
+    patch matching needs (views of one camera and one size: the same factor as without)."""
+    sides = torch.tensor([max(grey.shape[-2:]) for grey in greys], dtype=torch.float64)
+    if focal is None:
+        return [max(1, round(float(sides.max()) / coarse_size))] * len(greys)
+    coarse_focal = float((focal.double().cpu() / sides).max()) * coarse_size
+    return [max(1, round(float(f) / coarse_focal)) for f in focal.double().cpu()]
 
 
 def _mutual_best(ncc: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
@@ -162,12 +179,13 @@ def bridge_pairs(features: CoarseFeatures, stranded: list[int], registered: list
 
 
 def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Generator | None = None,
-                   guided: bool = False) -> dict[tuple[int, int], Tensor | None]:
+                   guided: bool = False, focal: Tensor | None = None) -> dict[tuple[int, int], Tensor | None]:
     """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
-    coarse features), each with its coarse homography (:func:`coarse_homographies`) where
-    ``guided`` asks for it (None otherwise, and where none holds). The considered pairs'
-    homographies are fitted once, for the selection and the guidance alike."""
-    features = coarse_features(greys, config)
+    coarse features; ``focal`` (V,) pixels where known, see :func:`coarse_features`), each with
+    its coarse homography (:func:`coarse_homographies`) where ``guided`` asks for it (None
+    otherwise, and where none holds). The considered pairs' homographies are fitted once, for
+    the selection and the guidance alike."""
+    features = coarse_features(greys, config, focal)
     scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
     considered = considered_pairs(scores, config, len(greys))
     homographies, inliers = {}, None

@@ -48,7 +48,7 @@ class MatchSiftFeatures(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         config = self.config
         state.putative = {}
-        for i, j in pairs_to_match(state.greys, config.pairs, generator=state.generator):
+        for i, j in pairs_to_match(state.greys, config.pairs, generator=state.generator, focal=state.focal_lengths()):
             state.report(f"matching views {i} and {j}")
             _, index = match_smnn(state.descriptors[i], state.descriptors[j], config.pairs.sift_ratio)
             if index.shape[0] >= config.reconstruction.min_pair_inliers:

@@ -106,6 +106,11 @@ class ViewSet:
                    generator=generator or torch.Generator().manual_seed(0),
                    report=progress or (lambda message: None))
 
+    def focal_lengths(self) -> Tensor | None:
+        """(V,) each view's focal length in pixels (the mean of fx and fy), None while K is a
+        placeholder to be estimated."""
+        return None if self.estimate_focal else self.K[:, [0, 1], [0, 1]].mean(-1)
+
 
 class DetectCorners(ConfiguredStage):
     """Harris corners of every view (batched), undistorted: fills ``greys``, ``raw``, ``corners``."""
@@ -133,7 +138,8 @@ class MatchPairs(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         objects = self.config.moving_objects
         state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report,
-                                                              other_motions=objects.enabled and objects.reconstruct_objects)
+                                                              other_motions=objects.enabled and objects.reconstruct_objects,
+                                                              focal=state.focal_lengths())
         return state
 
 
@@ -271,7 +277,7 @@ class BridgeWithSift(RetryStage):
     def forward(self, state: ViewSet) -> ViewSet:
         if len(state.reconstruction.view_indices) == len(state.images):
             return state
-        features = coarse_features(state.greys, self.config.pairs)  # once: every round ranks partners by them
+        features = coarse_features(state.greys, self.config.pairs, state.focal_lengths())  # once: every round ranks partners by them
         described: dict[int, tuple[Tensor, Tensor]] = {}  # SIFT of the views described so far
         tried: set[tuple[int, int]] = set()
         while True:  # again while the model grows: the views it gained bring new partners

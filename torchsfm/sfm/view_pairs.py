@@ -61,15 +61,18 @@ def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
 
 
 def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress,
-                     other_motions: bool = False) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
+                     other_motions: bool = False, focal: Tensor | None = None
+                     ) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
     """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
     (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
     on the coarse homography's prediction where it moves corners by more than a quarter of the
     disc; pairs with fewer than ``min_pair_inliers`` matches are dropped. Only the matched corner
     indices (index1, index2) are kept per pair (the NCC tables are dropped: memory bounded by one
     pair, not by the number of pairs). Also returns each matched pair's coarse homography (None
-    where none holds or ``pairs.guided`` is off). ``other_motions``: see :func:`guided_matches`."""
-    homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided)
+    where none holds or ``pairs.guided`` is off). ``other_motions``: see :func:`guided_matches`;
+    ``focal``: (V,) the views' focal lengths in pixels where known (coarse matching at one
+    angular resolution, :func:`~torchsfm.sfm.pairs.coarse_features`)."""
+    homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided, focal=focal)
     return guided_matches(greys, raw, homographies, config, report, other_motions), homographies
 
 

@@ -7,7 +7,7 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, select_pairs, turned_homographies
+from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, reduction_factors, select_pairs, turned_homographies
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -93,6 +93,35 @@ def test_a_view_turned_by_quarter_turns_gets_its_homography_and_an_upright_one_n
     expected = {-1: (H - 1 - y, x), 1: (y, W - 1 - x), 2: (W - 1 - x, H - 1 - y)}[quarter_turns]  # torch.rot90's turns
     moved = torch.stack([x, y, torch.ones_like(x)], -1) @ found[(0, 1)].T
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:], torch.stack(expected, -1), atol=2.0, rtol=0)
+
+
+def test_views_of_several_focal_lengths_are_reduced_to_one_angular_resolution():
+    """One camera (one K, one size): one factor, the largest side brought to about
+    ``coarse_size`` (768 px -> 2). A view at half size with half the focal length (another camera,
+    a zoom) is reduced by half that factor, so that both are seen at one scale; without focal
+    lengths, one factor for all."""
+    big, small = torch.zeros(1, 512, 768, dtype=torch.uint8), torch.zeros(1, 256, 384, dtype=torch.uint8)
+    assert reduction_factors([big, big], 320) == [2, 2]
+    assert reduction_factors([big, big], 320, torch.tensor([690.0, 690.0])) == [2, 2]
+    assert reduction_factors([big, small, big], 320, torch.tensor([690.0, 345.0, 690.0])) == [2, 1, 2]
+    assert reduction_factors([big, small], 320) == [2, 2]
+
+
+def test_a_view_at_half_size_gets_its_coarse_homography_given_the_focal_lengths():
+    """A fountain view and the next one at half size (half the focal length): given both focal
+    lengths, the coarse homography maps the first view's points where the reduced view sees
+    them — within 2 px of the full-size pair's homography halved."""
+    greys = _bundled_greys()
+    half = torch.nn.functional.avg_pool2d(greys[1:2], 2)[0]  # grey in [0, 1]
+    focal = torch.tensor([690.0, 345.0])
+    features = coarse_features([greys[0], half], PairsConfig(), focal)
+    found, inliers = coarse_homographies(features, [(0, 1)], PairsConfig(), torch.Generator().manual_seed(0))
+    full, _ = coarse_homographies(coarse_features(greys[:2], PairsConfig()), [(0, 1)], PairsConfig(), torch.Generator().manual_seed(0))
+    assert found[(0, 1)] is not None and inliers[(0, 1)] >= PairsConfig().min_score
+    points = torch.tensor([[200.0, 200.0, 1.0], [500.0, 300.0, 1.0], [300.0, 400.0, 1.0]], dtype=torch.float64)
+    moved, reference = points @ found[(0, 1)].T, points @ full[(0, 1)].T
+    halved = (reference[:, :2] / reference[:, 2:] + 0.5) / 2 - 0.5  # pixel centres of the half-size view
+    torch.testing.assert_close(moved[:, :2] / moved[:, 2:], halved, atol=2.0, rtol=0)
 
 
 def test_bad_mode_is_named():

@@ -5,7 +5,8 @@ shuffled order (a fixed seeded permutation) and with every third view only (wide
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61
 degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
 size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); fountain-P11 with views
-3 and 7 at half size (two cameras or zoom settings: the same scene at two scales; each view its own K); the KITTI
+3 and 7 at half size (two cameras: the same scene at two scales) and with views 3 and 7 zoomed in twice (their
+centres at full size: one image size, two focal lengths; each view its own K); the KITTI
 odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
 it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
@@ -47,12 +48,13 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 
 def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = (),
-                scaled: tuple[int, ...] | None = None) -> StrechaSequence:
+                scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = ()) -> StrechaSequence:
     """The sequence's images resized by ``scale`` (antialiased bilinear; only the ``scaled``
-    views where given: a set from several cameras or zoom settings), the ``turned`` views then
-    turned 90 degrees clockwise (portrait shots), written as PNGs to ``folder``; K, R and t
-    follow: pixel centres scale about (-0.5, -0.5), and a turned camera's K swaps its axes while
-    its R and t turn about the optical axis."""
+    views where given: a set from several cameras), the ``zoomed`` views' centres (1/2 of each
+    side) resized back to the full size (a zoom lens at twice the focal length), the ``turned``
+    views then turned 90 degrees clockwise (portrait shots), written as PNGs to ``folder``; K, R
+    and t follow: pixel centres scale about (-0.5, -0.5), and a turned camera's K swaps its axes
+    while its R and t turn about the optical axis."""
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
     paths, Ks, Rs, ts = [], [], [], []
     for v, path in enumerate(sequence.images):
@@ -62,6 +64,13 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
             image = functional.interpolate(image[None].float(), size=size, mode="bilinear", antialias=True)[0].round().clamp(0, 255).byte()
             K[:2, :2] *= scale
             K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+        if v in zoomed:
+            height, width = image.shape[-2:]
+            top, left = height // 4, width // 4
+            centre = image[None, :, top:top + height // 2, left:left + width // 2].float()
+            image = functional.interpolate(centre, size=(height, width), mode="bilinear", antialias=True)[0].round().clamp(0, 255).byte()
+            K[:2, :2] *= 2
+            K[:2, 2] = (K[:2, 2] - torch.tensor([left, top], dtype=K.dtype) + 0.5) * 2 - 0.5
         if v in turned:
             height = image.shape[-2]
             image = torch.rot90(image, k=-1, dims=(-2, -1))
@@ -94,6 +103,7 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "herzjesu_double": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_double", scale=2.0),
         "herzjesu_portrait": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_portrait", turned=(0, 4)),
         "fountain_mixed": lambda: transformed(fountain, work / "inputs" / "fountain_mixed", scale=0.5, scaled=(3, 7)),
+        "fountain_zoomed": lambda: transformed(fountain, work / "inputs" / "fountain_zoomed", zoomed=(3, 7)),
     }
     chosen = {
         "fountain": fountain,

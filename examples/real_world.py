@@ -6,7 +6,8 @@ fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6
 degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
 size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); fountain-P11 with views
 3 and 7 at half size (two cameras: the same scene at two scales) and with views 3 and 7 zoomed in twice (their
-centres at full size: one image size, two focal lengths; each view its own K); the KITTI
+centres at full size: one image size, two focal lengths; each view its own K) and with views 3 and 7 tilted by 30
+degrees (turned about the optical axis); the KITTI
 odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
 it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
@@ -24,12 +25,14 @@ and K where it is installed (``bench`` extra; SIFT, exhaustive matching, increme
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import time
 from pathlib import Path
 
 import torch
 import torch.nn.functional as functional
+from kornia.geometry.transform import warp_perspective
 
 import torchsfm
 from torchsfm.camera import decompose_projection
@@ -48,13 +51,16 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 
 def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = (),
-                scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = ()) -> StrechaSequence:
+                scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = (), tilted: tuple[int, ...] = ()
+                ) -> StrechaSequence:
     """The sequence's images resized by ``scale`` (antialiased bilinear; only the ``scaled``
     views where given: a set from several cameras), the ``zoomed`` views' centres (1/2 of each
-    side) resized back to the full size (a zoom lens at twice the focal length), the ``turned``
-    views then turned 90 degrees clockwise (portrait shots), written as PNGs to ``folder``; K, R
-    and t follow: pixel centres scale about (-0.5, -0.5), and a turned camera's K swaps its axes
-    while its R and t turn about the optical axis."""
+    side) resized back to the full size (a zoom lens at twice the focal length), the ``tilted``
+    views turned 30 degrees about the optical axis (a tilted hand-held shot; corners cut, the
+    size kept), the ``turned`` views then turned 90 degrees clockwise (portrait shots), written
+    as PNGs to ``folder``; K, R and t follow: pixel centres scale about (-0.5, -0.5), a turned
+    camera's K swaps its axes, and a tilted or turned camera's R and t turn about the optical
+    axis."""
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
     paths, Ks, Rs, ts = [], [], [], []
     for v, path in enumerate(sequence.images):
@@ -71,6 +77,12 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
             image = functional.interpolate(centre, size=(height, width), mode="bilinear", antialias=True)[0].round().clamp(0, 255).byte()
             K[:2, :2] *= 2
             K[:2, 2] = (K[:2, 2] - torch.tensor([left, top], dtype=K.dtype) + 0.5) * 2 - 0.5
+        if v in tilted:
+            cos, sin = math.cos(math.radians(30)), math.sin(math.radians(30))
+            tilt = torch.tensor([[cos, -sin, 0.0], [sin, cos, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            mapping = (K @ tilt @ torch.linalg.inv(K)).float()  # the tilted camera's pixels from the upright one's
+            image = warp_perspective(image[None].float(), mapping[None], tuple(image.shape[-2:]), align_corners=True)[0].round().clamp(0, 255).byte()
+            R, t = tilt @ R, tilt @ t
         if v in turned:
             height = image.shape[-2]
             image = torch.rot90(image, k=-1, dims=(-2, -1))
@@ -104,6 +116,7 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "herzjesu_portrait": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_portrait", turned=(0, 4)),
         "fountain_mixed": lambda: transformed(fountain, work / "inputs" / "fountain_mixed", scale=0.5, scaled=(3, 7)),
         "fountain_zoomed": lambda: transformed(fountain, work / "inputs" / "fountain_zoomed", zoomed=(3, 7)),
+        "fountain_tilted": lambda: transformed(fountain, work / "inputs" / "fountain_tilted", tilted=(3, 7)),
     }
     chosen = {
         "fountain": fountain,

@@ -368,7 +368,7 @@ class PairsConfig:
     with the epipolar band (Sampson distance within the F inlier threshold) in place of the disc,
     and the mapping runs again. ``sift_bridge``: when views are still left out, the pairs that
     may link them to the model take their homography from the coarse NCC matches with one view's
-    patches turned by quarter turns (portrait and landscape shots), or else from SIFT matches
+    patches turned every 30 degrees (portrait and landscape shots, tilted ones), or else from SIFT matches
     (wide baselines), are matched and verified as above, and the mapping runs again.
     ``matcher``: ``ncc`` (the thesis' Harris corners and NCC + strength measure, above) or
     ``sift`` (Kornia's SIFT: ``sift_features`` scale-space keypoints per view, RootSIFT

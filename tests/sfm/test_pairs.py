@@ -124,6 +124,28 @@ def test_a_view_at_half_size_gets_its_coarse_homography_given_the_focal_lengths(
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:], halved, atol=2.0, rtol=0)
 
 
+def test_a_tilted_view_gets_its_homography_from_patches_turned_between_quarter_turns():
+    """A view and the same view turned by 30 degrees about its centre (a tilted shot): the
+    patches turned by a twelfth of a turn find the homography (the upright and quarter-turned ones
+    cannot), mapping every point where the turn puts it within 3 px."""
+    from kornia.geometry.transform import rotate
+
+    grey = _bundled_greys()[0]
+    H, W = grey.shape[-2:]
+    tilted = rotate(grey[None].float(), torch.tensor([30.0]))[0]  # counter-clockwise on screen, about the centre
+    features = coarse_features([grey, tilted], PairsConfig())
+    upright, _ = coarse_homographies(features, [(0, 1)], PairsConfig(), torch.Generator().manual_seed(0))
+    found = turned_homographies(features, [(0, 1)], PairsConfig(), torch.Generator().manual_seed(0))
+    assert upright[(0, 1)] is None and list(found) == [(0, 1)]
+    centre = torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
+    points = torch.tensor([[300.0, 200.0], [450.0, 300.0], [380.0, 330.0]], dtype=torch.float64)
+    angle = torch.deg2rad(torch.tensor(-30.0, dtype=torch.float64))  # image rows point down: on screen counter-clockwise
+    turn = torch.stack([torch.stack([angle.cos(), -angle.sin()]), torch.stack([angle.sin(), angle.cos()])])
+    expected = (points - centre) @ turn.T + centre
+    moved = torch.cat([points, torch.ones(3, 1, dtype=torch.float64)], -1) @ found[(0, 1)].T
+    torch.testing.assert_close(moved[:, :2] / moved[:, 2:], expected, atol=3.0, rtol=0)
+
+
 def test_bad_mode_is_named():
     from torchsfm.errors import ConfigError
 

@@ -17,6 +17,7 @@ similarity, over every pair up to ``exhaustive_up_to`` views.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -198,28 +199,71 @@ def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], 
                         generator: torch.Generator | None = None, turn: int = 0
                         ) -> tuple[dict[tuple[int, int], Tensor | None], dict[tuple[int, int], int]]:
     """:func:`fit_homographies` of the view pairs' coarse mutual-best matches, the second view's
-    patches turned by ``turn`` quarter turns (an image turned a quarter turn turns its patches
-    alike: the NCC of a portrait shot against a landscape one)."""
-    side = 2 * config.patch_half_size + 1
-    order = torch.rot90(torch.arange(side * side).reshape(side, side), turn).flatten()  # a patch's pixels, turned
+    patches turned by ``turn`` twelfths of a turn (:func:`turned_patches`: a view turned against
+    the other turns its patches alike — a portrait shot among landscape ones, a tilted one)."""
     matches = []
     for i, j in pairs:
         ki, kj = features.valid[i], features.valid[j]
-        a, b = _mutual_best(features.patches[i][ki] @ features.patches[j][kj][:, order].T, config.ncc_threshold)
+        first, second = turned_patches(features.patches[i][ki], features.patches[j][kj], config.patch_half_size, turn)
+        a, b = _mutual_best(first @ second.T, config.ncc_threshold)
         matches.append(torch.cat([features.points[i][ki][a], features.points[j][kj][b]], dim=-1))
     return fit_homographies(pairs, matches, config, generator)
 
 
+TURNS = 12  # the turns of one view against another tried where views are left out: every 30 degrees
+
+
+def turned_patches(first: Tensor, second: Tensor, half_size: int, turn: int) -> tuple[Tensor, Tensor]:
+    """Two views' zero-mean unit-norm (K, (2n + 1)²) patches made comparable with the second
+    view turned by ``turn`` twelfths of a turn (counter-clockwise in the image): quarter turns
+    permute the second view's pixels (exact); the other turns resample them bilinearly at the
+    turned positions, and both views' patches are then compared over the inscribed disc only
+    (zero mean and unit norm there), the part of a patch that a turn keeps inside it."""
+    side = 2 * half_size + 1
+    if turn % (TURNS // 4) == 0:
+        return first, second[:, torch.rot90(torch.arange(side * side).reshape(side, side), turn // (TURNS // 4)).flatten()]
+    weights, disc = _turn_weights(half_size, 2 * math.pi * turn / TURNS, first.dtype)
+    return _normalized(first[:, disc]), _normalized((second @ weights.T)[:, disc])
+
+
+def _turn_weights(half_size: int, angle: float, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """(P, P) bilinear weights that sample a (2n + 1)² patch (P pixels, row-major) turned by
+    ``angle`` radians about its centre — pixel (x, y) takes the patch's value at its position
+    turned back, as :func:`torch.rot90` turns a quarter — and the (P,) bool inscribed disc, where
+    every such position lies inside the patch."""
+    side = 2 * half_size + 1
+    offsets = torch.arange(-half_size, half_size + 1, dtype=torch.float64)
+    dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
+    dx, dy = dx.flatten(), dy.flatten()
+    cos, sin = math.cos(angle), math.sin(angle)
+    x, y = cos * dx - sin * dy + half_size, sin * dx + cos * dy + half_size  # (P,) source positions in the patch
+    disc = dx.square() + dy.square() <= half_size**2
+    x0, y0 = x.floor().clamp(0, side - 2), y.floor().clamp(0, side - 2)
+    fx, fy = x - x0, y - y0
+    weights = torch.zeros(side * side, side * side, dtype=torch.float64)
+    rows = torch.arange(side * side)
+    for ox, oy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        weights.index_put_((rows, ((y0 + oy) * side + x0 + ox).long()), w, accumulate=True)
+    return weights.to(dtype), disc
+
+
+def _normalized(patches: Tensor) -> Tensor:
+    """(K, D) patches made zero-mean and unit-norm (a constant one all zeros)."""
+    centred = patches - patches.mean(-1, keepdim=True)
+    norm = centred.norm(dim=-1, keepdim=True)
+    return torch.where(norm > 1e-8, centred / norm.clamp_min(1e-12), torch.zeros_like(centred))
+
+
 def turned_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
                         generator: torch.Generator | None = None) -> dict[tuple[int, int], Tensor]:
-    """The coarse homographies (3, 3) of the view pairs whose second view is turned a quarter,
-    a half or three quarters of a turn against the first (portrait and landscape shots of one
-    set): per pair, the turn whose :func:`coarse_homographies` keeps the most inliers, where it
-    keeps more than the unturned one (and ``min_score`` at least)."""
-    fitted = [coarse_homographies(features, pairs, config, generator, turn) for turn in range(4)]  # (homographies, inliers)
+    """The coarse homographies (3, 3) of the view pairs whose second view is turned against the
+    first (portrait and landscape shots of one set, a tilted shot): per pair, the turn of the
+    ``TURNS`` (every 30 degrees) whose :func:`coarse_homographies` keeps the most inliers, where
+    it keeps more than the unturned one (and ``min_score`` at least)."""
+    fitted = [coarse_homographies(features, pairs, config, generator, turn) for turn in range(TURNS)]  # (homographies, inliers)
     found = {}
     for pair in pairs:
-        best = max(range(4), key=lambda turn: fitted[turn][1][pair])
+        best = max(range(TURNS), key=lambda turn: fitted[turn][1][pair])
         if best != 0 and fitted[best][0][pair] is not None and fitted[best][1][pair] > fitted[0][1][pair]:
             found[pair] = fitted[best][0][pair]
     return found

@@ -256,8 +256,8 @@ class BridgeWithSift(RetryStage):
     """When views stay out of the model (``pairs.sift_bridge``): the pairs that may link each of
     them to the registered views (:func:`~torchsfm.sfm.pairs.bridge_pairs`) get a homography
     in place of the coarse NCC one — from the coarse NCC matches of the partner's patches turned
-    by quarter turns where that fits one (:func:`~torchsfm.sfm.pairs.turned_homographies`: a
-    portrait shot among landscape ones; such a view needs no SIFT), else from SIFT matches
+    every 30 degrees where that fits one (:func:`~torchsfm.sfm.pairs.turned_homographies`: a
+    portrait shot among landscape ones, a tilted one; such a view needs no SIFT), else from SIFT matches
     (:func:`~torchsfm.sfm.sift.sift_homographies`): a wide baseline (rotations of 40-60 degrees)
     leaves too few coarse NCC matches to fit it, or fits a false one. Then the thesis' matching
     as before: NCC + strength measure at the corners, the disc centred on the homography's

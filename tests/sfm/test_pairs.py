@@ -97,14 +97,18 @@ def test_a_view_turned_by_quarter_turns_gets_its_homography_and_an_upright_one_n
 
 def test_views_of_several_focal_lengths_are_reduced_to_one_angular_resolution():
     """One camera (one K, one size): one factor, the largest side brought to about
-    ``coarse_size`` (768 px -> 2). A view at half size with half the focal length (another camera,
-    a zoom) is reduced by half that factor, so that both are seen at one scale; without focal
-    lengths, one factor for all."""
+    ``coarse_size`` (768 px -> 2). A view at half size with half the focal length (another camera)
+    is reduced by half that factor, a view of one size zoomed in three times by three times that
+    factor (whichever comes first), so that all are seen at one scale; without focal lengths, one
+    factor for all."""
     big, small = torch.zeros(1, 512, 768, dtype=torch.uint8), torch.zeros(1, 256, 384, dtype=torch.uint8)
     assert reduction_factors([big, big], 320) == [2, 2]
     assert reduction_factors([big, big], 320, torch.tensor([690.0, 690.0])) == [2, 2]
     assert reduction_factors([big, small, big], 320, torch.tensor([690.0, 345.0, 690.0])) == [2, 1, 2]
+    assert reduction_factors([big, big, big], 320, torch.tensor([690.0, 2070.0, 690.0])) == [2, 6, 2]
+    assert reduction_factors([big, big, big], 320, torch.tensor([2070.0, 690.0, 690.0])) == [6, 2, 2]
     assert reduction_factors([big, small], 320) == [2, 2]
+    assert reduction_factors([big, big], 320, torch.tensor([690.0, 69000.0]), smallest=11) == [2, 46]  # 512 // 11: a patch still fits
 
 
 def test_a_view_at_half_size_gets_its_coarse_homography_given_the_focal_lengths():

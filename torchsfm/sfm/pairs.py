@@ -55,7 +55,7 @@ def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | No
     reduced so that every view is seen at one scale (:func:`reduction_factors`), a few views of
     one size and factor at a time (no full-resolution float copy of them all). ``focal``: (V,)
     each view's focal length in pixels, where known."""
-    factors = reduction_factors(greys, config.coarse_size, focal)
+    factors = reduction_factors(greys, config.coarse_size, focal, smallest=2 * (config.patch_half_size + 1) + 1)
     harris = HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1)
     positions: dict[int, Tensor] = {}
     patches: dict[int, Tensor] = {}
@@ -73,19 +73,22 @@ def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | No
     return CoarseFeatures(points=pad_rows([positions[v] for v in views])[0], patches=patches_padded, valid=valid)
 
 
-def reduction_factors(greys: list[Tensor], coarse_size: int, focal: Tensor | None = None) -> list[int]:
-    """Per (1, H_v, W_v) image the integer factor it is reduced by for coarse matching. Without
-    focal lengths, one factor: the one that brings the largest image to about ``coarse_size``
-    px (one camera: every view at one scale). With each view's focal length (V,) in pixels, a
-    factor per view that brings every focal length to about one value — the one at which the
-    view with the longest focal length for its size has its long side at ``coarse_size`` — so
-    that views from several cameras or zoom settings are seen at one angular resolution, as
-    patch matching needs (views of one camera and one size: the same factor as without)."""
-    sides = torch.tensor([max(grey.shape[-2:]) for grey in greys], dtype=torch.float64)
+def reduction_factors(greys: list[Tensor], coarse_size: int, focal: Tensor | None = None, smallest: int = 1) -> list[int]:
+    """Per (1, H_v, W_v) image the integer factor it is reduced by for coarse matching: the
+    largest image by the factor that brings its long side to about ``coarse_size`` px, and —
+    given each view's focal length (V,) in pixels — every other view by the factor that brings
+    its focal length to that image's reduced one (the largest image of the shortest focal
+    length where several are largest), so that views from several cameras or zoom settings are
+    seen at one angular resolution, as patch matching needs. Without focal lengths (one camera,
+    one image size) and for views of one camera and one size: one factor for all. No view is
+    reduced below ``smallest`` px on its short side (a patch and its border)."""
+    sides = [max(grey.shape[-2:]) for grey in greys]
     if focal is None:
-        return [max(1, round(float(sides.max()) / coarse_size))] * len(greys)
-    coarse_focal = float((focal.double().cpu() / sides).max()) * coarse_size
-    return [max(1, round(float(f) / coarse_focal)) for f in focal.double().cpu()]
+        return [max(1, round(max(sides) / coarse_size))] * len(greys)
+    focal = focal.double().cpu().tolist()
+    reference = max(range(len(greys)), key=lambda v: (sides[v], -focal[v]))
+    coarse_focal = focal[reference] / max(1, round(sides[reference] / coarse_size))
+    return [max(1, min(round(f / coarse_focal), min(grey.shape[-2:]) // smallest)) for f, grey in zip(focal, greys)]
 
 
 def _mutual_best(ncc: Tensor, threshold: float) -> tuple[Tensor, Tensor]:

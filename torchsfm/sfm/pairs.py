@@ -188,14 +188,42 @@ def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Ge
     coarse features; ``focal`` (V,) pixels where known, see :func:`coarse_features`), each with
     its coarse homography (:func:`coarse_homographies`) where ``guided`` asks for it (None
     otherwise, and where none holds). The considered pairs' homographies are fitted once, for
-    the selection and the guidance alike."""
+    the selection and the guidance alike. Where the pairs with a homography leave the views in
+    several groups (``similarity`` and ``auto`` modes), the considered pairs between groups are
+    tried with one view's patches turned (:func:`turned_homographies`: portrait and tilted
+    shots), with random draws of their own (the others' as without them), and the pairs a turn
+    joins are matched too."""
     features = coarse_features(greys, config, focal)
     scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
     considered = considered_pairs(scores, config, len(greys))
     homographies, inliers = {}, None
     if guided or scores is not None:
         homographies, inliers = coarse_homographies(features, considered, config, generator)
-    return {pair: homographies.get(pair) if guided else None for pair in select_pairs(scores, config, len(greys), inliers)}
+    chosen = {pair: homographies.get(pair) if guided else None for pair in select_pairs(scores, config, len(greys), inliers)}
+    if scores is not None:
+        group = view_groups([pair for pair in considered if homographies[pair] is not None], len(greys))
+        between = [(i, j) for i, j in considered if group[i] != group[j]]
+        if between:
+            own = None if generator is None else torch.Generator(generator.device).manual_seed(generator.initial_seed())
+            chosen.update({pair: H if guided else None for pair, H in turned_homographies(features, between, config, own).items()})
+    return dict(sorted(chosen.items()))
+
+
+def view_groups(pairs: list[tuple[int, int]], num_views: int) -> list[int]:
+    """Per view of ``num_views`` the group it belongs to (the smallest view of the group): the
+    views the ``pairs`` join, directly or through others."""
+    group = list(range(num_views))
+
+    def root(v: int) -> int:
+        while group[v] != v:
+            group[v] = group[group[v]]
+            v = group[v]
+        return v
+
+    for i, j in pairs:
+        a, b = root(i), root(j)
+        group[max(a, b)] = min(a, b)
+    return [root(v) for v in range(num_views)]
 
 
 def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,

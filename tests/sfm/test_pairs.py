@@ -7,7 +7,8 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import coarse_features, coarse_homographies, pair_scores, reduction_factors, select_pairs, turned_homographies
+from torchsfm.sfm.pairs import (coarse_features, coarse_homographies, pair_scores, pairs_to_match, reduction_factors, select_pairs,
+                                turned_homographies, view_groups)
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -148,6 +149,27 @@ def test_a_tilted_view_gets_its_homography_from_patches_turned_between_quarter_t
     expected = (points - centre) @ turn.T + centre
     moved = torch.cat([points, torch.ones(3, 1, dtype=torch.float64)], -1) @ found[(0, 1)].T
     torch.testing.assert_close(moved[:, :2] / moved[:, 2:], expected, atol=3.0, rtol=0)
+
+
+def test_view_groups_join_views_through_others():
+    assert view_groups([(0, 1), (2, 3), (1, 4)], 6) == [0, 0, 2, 2, 0, 5]
+    assert view_groups([], 2) == [0, 1]
+
+
+def test_a_tilted_view_is_matched_at_pair_selection():
+    """Three fountain views, the third tilted by 30 degrees: no upright coarse homography joins
+    it to the others, so pair selection tries turned patches, and the pairs with it are chosen
+    with a homography; the upright pair keeps the homography it has without the search."""
+    from kornia.geometry.transform import rotate
+
+    greys = list(_bundled_greys())
+    greys[2] = rotate(greys[2][None].float(), torch.tensor([30.0]))[0]
+    features = coarse_features(greys, PairsConfig())
+    upright, _ = coarse_homographies(features, [(0, 1), (0, 2), (1, 2)], PairsConfig(), torch.Generator().manual_seed(0))
+    assert upright[(0, 1)] is not None and upright[(0, 2)] is None and upright[(1, 2)] is None
+    chosen = pairs_to_match(greys, PairsConfig(), torch.Generator().manual_seed(0), guided=True)
+    assert chosen[(1, 2)] is not None
+    torch.testing.assert_close(chosen[(0, 1)], upright[(0, 1)], rtol=0, atol=0)
 
 
 def test_bad_mode_is_named():

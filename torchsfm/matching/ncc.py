@@ -56,7 +56,13 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int, warp: Tensor 
     normalized = torch.stack([2 * grid[..., 0] / (W - 1) - 1, 2 * grid[..., 1] / (H - 1) - 1], dim=-1)
     samples = functional.grid_sample(image[None].to(points.dtype), normalized[None], mode="bilinear",
                                      padding_mode="border", align_corners=True)[0, 0]  # (K, P)
-    centered = samples - samples.mean(-1, keepdim=True)
+    return zero_mean_unit_norm(samples)
+
+
+def zero_mean_unit_norm(patches: Tensor) -> Tensor:
+    """(K, D) patches less their means, over their norms: correlations become dot products. A
+    constant patch becomes all zeros (it correlates with nothing)."""
+    centered = patches - patches.mean(-1, keepdim=True)
     norm = centered.norm(dim=-1, keepdim=True)
     return torch.where(norm > 1e-8, centered / norm.clamp_min(1e-12), torch.zeros_like(centered))
 

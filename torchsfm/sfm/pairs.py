@@ -27,7 +27,7 @@ from torch.nn import functional
 from torchsfm.config import HarrisConfig, PairsConfig, RansacConfig
 from torchsfm.features.harris import detect_corners
 from torchsfm.images import same_size_batches, to_unit_float
-from torchsfm.matching.ncc import extract_patches
+from torchsfm.matching.ncc import extract_patches, zero_mean_unit_norm
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ragged import pad_rows
 from torchsfm.robust.ransac import ransac
@@ -213,17 +213,19 @@ def view_groups(pairs: list[tuple[int, int]], num_views: int) -> list[int]:
     """Per view of ``num_views`` the group it belongs to (the smallest view of the group): the
     views the ``pairs`` join, directly or through others."""
     group = list(range(num_views))
-
-    def root(v: int) -> int:
-        while group[v] != v:
-            group[v] = group[group[v]]
-            v = group[v]
-        return v
-
     for i, j in pairs:
-        a, b = root(i), root(j)
+        a, b = group_root(group, i), group_root(group, j)
         group[max(a, b)] = min(a, b)
-    return [root(v) for v in range(num_views)]
+    return [group_root(group, v) for v in range(num_views)]
+
+
+def group_root(group: list[int], v: int) -> int:
+    """The view that names view v's group in the union-find forest ``group`` (each view's
+    parent, itself at a root), the path halved on the way."""
+    while group[v] != v:
+        group[v] = group[group[v]]
+        v = group[v]
+    return v
 
 
 def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,
@@ -241,7 +243,7 @@ def coarse_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], 
     return fit_homographies(pairs, matches, config, generator)
 
 
-TURNS = 12  # the turns of one view against another tried where views are left out: every 30 degrees
+TURNS = 12  # the turns of one view against another tried where no upright homography joins them: every 30 degrees
 
 
 def turned_patches(first: Tensor, second: Tensor, half_size: int, turn: int) -> tuple[Tensor, Tensor]:
@@ -254,7 +256,7 @@ def turned_patches(first: Tensor, second: Tensor, half_size: int, turn: int) -> 
     if turn % (TURNS // 4) == 0:
         return first, second[:, torch.rot90(torch.arange(side * side).reshape(side, side), turn // (TURNS // 4)).flatten()]
     weights, disc = _turn_weights(half_size, 2 * math.pi * turn / TURNS, first.dtype)
-    return _normalized(first[:, disc]), _normalized((second @ weights.T)[:, disc])
+    return zero_mean_unit_norm(first[:, disc]), zero_mean_unit_norm((second @ weights.T)[:, disc])
 
 
 def _turn_weights(half_size: int, angle: float, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
@@ -276,13 +278,6 @@ def _turn_weights(half_size: int, angle: float, dtype: torch.dtype) -> tuple[Ten
     for ox, oy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         weights.index_put_((rows, ((y0 + oy) * side + x0 + ox).long()), w, accumulate=True)
     return weights.to(dtype), disc
-
-
-def _normalized(patches: Tensor) -> Tensor:
-    """(K, D) patches made zero-mean and unit-norm (a constant one all zeros)."""
-    centred = patches - patches.mean(-1, keepdim=True)
-    norm = centred.norm(dim=-1, keepdim=True)
-    return torch.where(norm > 1e-8, centred / norm.clamp_min(1e-12), torch.zeros_like(centred))
 
 
 def turned_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], config: PairsConfig,

@@ -17,6 +17,7 @@ stage holds the config sections it reads and no others (:class:`ConfiguredStage`
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -30,7 +31,7 @@ from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
-from torchsfm.sfm.pairs import bridge_pairs, coarse_features, turned_homographies
+from torchsfm.sfm.pairs import bridge_pairs, coarse_features, group_root, turned_homographies
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
 from torchsfm.sfm.view_pairs import (PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
@@ -319,13 +320,7 @@ def joining_pairs(bridges: dict[tuple[int, int], PairMatches], groups: list[list
     can verify falsely (a dominant plane and a few chance matches), and the strongest link is the
     likeliest true one."""
     group = list(range(num_views))
-
-    def root(v: int) -> int:
-        while group[v] != v:
-            group[v] = group[group[v]]
-            v = group[v]
-        return v
-
+    root = partial(group_root, group)
     for views in groups:
         for v in views[1:]:
             group[root(v)] = root(views[0])

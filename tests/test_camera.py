@@ -17,7 +17,7 @@ from torchsfm.camera import (
     undistort_image,
     undistort_points,
 )
-from torchsfm.errors import DegenerateConfigurationError
+from torchsfm.errors import DegenerateConfigurationError, InputError
 from torchsfm.geometry.rotation import axis_angle_to_rotation
 
 DOUBLE = dict(dtype=torch.float64)
@@ -104,6 +104,17 @@ def test_singular_intrinsics_are_rejected():
     K = torch.tensor([[800.0, 0, 320], [0, 0, 240], [0, 0, 1]], **DOUBLE)
     with pytest.raises(DegenerateConfigurationError, match="K is singular"):
         check_intrinsics(K=K)
+
+
+def test_intrinsics_with_a_focal_length_not_positive_are_refused_with_the_values_named():
+    """A mirrored camera (fx < 0) or a flipped one (fy < 0) is refused; K scaled by -1 as a whole
+    (K[2, 2] < 0 too) is the same camera and passes."""
+    K = torch.tensor([[800.0, 0, 320], [0, 800.0, 240], [0, 0, 1]], **DOUBLE)
+    for flip in ([-1.0, 1.0, 1.0], [1.0, -1.0, 1.0]):
+        with pytest.raises(InputError, match=r"K has a focal length that is not positive \(fx, fy = -?800, -?800\)"):
+            check_intrinsics(K=K * torch.tensor(flip, **DOUBLE)[:, None])
+    check_intrinsics(K=-K)
+    check_intrinsics(K=torch.stack([K, 2 * K]))
 
 
 def test_a_resampled_image_s_intrinsics_project_to_its_pixels():

@@ -22,7 +22,7 @@ import torch
 from kornia.geometry.transform import remap
 from torch import Tensor
 
-from torchsfm.errors import DegenerateConfigurationError
+from torchsfm.errors import DegenerateConfigurationError, InputError
 from torchsfm.validation import check_finite, check_shapes
 from torchsfm.numerics import floor_tiny
 
@@ -54,13 +54,19 @@ def map_homogeneous_by_each(M: Tensor, X: Tensor) -> Tensor:
 
 
 def check_intrinsics(**matrices: Tensor) -> None:
-    """Raise if any K (*, 3, 3) is non-finite or singular (|det K| tiny against its scale)."""
+    """Raise if any K (*, 3, 3) is non-finite, singular (|det K| tiny against its scale) or has a
+    focal length (fx or fy, over K[2, 2]) that is not positive (a mirrored or flipped camera)."""
     check_shapes(**{name: (K, "* 3 3") for name, K in matrices.items()})
     check_finite(**matrices)
     for name, K in matrices.items():
         scale = floor_tiny(K.abs().amax(dim=(-2, -1)))
         if bool((torch.linalg.det(K).abs() <= 1e-12 * scale**3).any()):
             raise DegenerateConfigurationError(f"{name} is singular: an intrinsic matrix must be invertible")
+        focal = K[..., [0, 1], [0, 1]] * K[..., 2:, 2]  # the signs of fx / K22, fy / K22
+        if bool((focal <= 0).any()):
+            bad = K[..., [0, 1], [0, 1]][(focal <= 0).any(-1)][0].tolist()
+            raise InputError(f"{name} has a focal length that is not positive (fx, fy = {bad[0]:g}, {bad[1]:g}): "
+                             "an intrinsic matrix has fx, fy > 0 (with K[2, 2] > 0)")
 
 
 def projection_matrix(K: Tensor, R: Tensor, t: Tensor) -> Tensor:

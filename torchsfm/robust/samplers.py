@@ -15,6 +15,13 @@ def resolve_generator(generator: torch.Generator | None, device: torch.device | 
     return generator if generator is not None else torch.Generator(device=device).manual_seed(0)
 
 
+def side_generator(generator: torch.Generator | None) -> torch.Generator | None:
+    """A new generator seeded as ``generator`` was (None stays None): draws made from it leave
+    the caller's stream as it would be without them (an optional search must not change what
+    follows it)."""
+    return None if generator is None else torch.Generator(generator.device).manual_seed(generator.initial_seed())
+
+
 def _weighted_top_k(weights: Tensor, k: int, generator: torch.Generator | None) -> Tensor:
     """Indices of k draws without replacement, each ∝ its weight among the remaining.
 

@@ -17,6 +17,7 @@ similarity, over every pair up to ``exhaustive_up_to`` views.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ from torchsfm.matching.ncc import extract_patches, zero_mean_unit_norm
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ragged import pad_rows
 from torchsfm.robust.ransac import ransac
+from torchsfm.robust.samplers import side_generator
 
 HOMOGRAPHY_BATCH = 32  # view pairs per batched RANSAC call of the coarse homographies
 
@@ -204,8 +206,8 @@ def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Ge
         group = view_groups([pair for pair in considered if homographies[pair] is not None], len(greys))
         between = [(i, j) for i, j in considered if group[i] != group[j]]
         if between:
-            own = None if generator is None else torch.Generator(generator.device).manual_seed(generator.initial_seed())
-            chosen.update({pair: H if guided else None for pair, H in turned_homographies(features, between, config, own).items()})
+            turned = turned_homographies(features, between, config, side_generator(generator))
+            chosen.update({pair: H if guided else None for pair, H in turned.items()})
     return dict(sorted(chosen.items()))
 
 
@@ -259,6 +261,7 @@ def turned_patches(first: Tensor, second: Tensor, half_size: int, turn: int) -> 
     return zero_mean_unit_norm(first[:, disc]), zero_mean_unit_norm((second @ weights.T)[:, disc])
 
 
+@functools.lru_cache(maxsize=None)  # a few (size, turn) pairs, asked for once per view pair
 def _turn_weights(half_size: int, angle: float, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """(P, P) bilinear weights that sample a (2n + 1)² patch (P pixels, row-major) turned by
     ``angle`` radians about its centre — pixel (x, y) takes the patch's value at its position

@@ -29,6 +29,7 @@ from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.images import check_image, is_grey_bytes, sizes_named, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
+from torchsfm.robust.samplers import side_generator
 from torchsfm.sfm.mapping import map_incrementally
 from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.pairs import bridge_pairs, coarse_features, group_root, turned_homographies
@@ -288,7 +289,7 @@ class BridgeWithSift(RetryStage):
             if not candidates:
                 return state
             tried |= set(candidates)
-            own = torch.Generator(state.generator.device).manual_seed(state.generator.initial_seed())  # the draws below as without it
+            own = side_generator(state.generator)  # the draws below as without it
             homographies = turned_homographies(features, candidates, self.config.pairs, own)
             turned = {v for pair in homographies for v in pair if v in stranded}  # linked already: no SIFT for them
             unturned = [pair for pair in candidates if not set(pair) & turned]

@@ -173,6 +173,12 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
     return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}, {seconds:.1f} s"
 
 
+def colmap_pinhole(K: torch.Tensor) -> list[float]:
+    """COLMAP's PINHOLE parameters fx, fy, cx, cy of a (3, 3) K: COLMAP puts pixel (0, 0)'s centre at
+    (0.5, 0.5), ours at (0, 0)."""
+    return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5]
+
+
 def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
     os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's progress log
     try:
@@ -193,7 +199,7 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
     mapping = pycolmap.IncrementalPipelineOptions()
     if with_K:
         options.camera_model = "PINHOLE"
-        options.camera_params = ",".join(str(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        options.camera_params = ",".join(str(v) for v in colmap_pinhole(K))
         mapping.ba_refine_focal_length = False
         mapping.ba_refine_principal_point = False
     else:  # COLMAP's own way without K: one focal length from its prior, refined; principal point at the centre
@@ -206,7 +212,7 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
         with pycolmap.Database.open(database) as table:
             for image in table.read_all_images():
                 camera, view_K = table.read_camera(image.camera_id), sequence.K[int(Path(image.name).stem)]
-                camera.params = [float(v) for v in (view_K[0, 0], view_K[1, 1], view_K[0, 2], view_K[1, 2])]
+                camera.params = colmap_pinhole(view_K)
                 table.update_camera(camera)
     pycolmap.match_exhaustive(database)
     models = pycolmap.incremental_mapping(database, images, workdir / "sparse", options=mapping)

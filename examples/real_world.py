@@ -9,7 +9,8 @@ size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K)
 centres at full size: one image size, two focal lengths; each view its own K) and with views 3 and 7 tilted by 30
 degrees (turned about the optical axis); the KITTI
 odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
-it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away);
+it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away),
+and with a time stamp burnt into every frame, without and with its mask (``kitti06_stamped``, ``kitti06_stamped_masked``);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
@@ -51,8 +52,8 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 
 def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = (),
-                scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = (), tilted: tuple[int, ...] = ()
-                ) -> StrechaSequence:
+                scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = (), tilted: tuple[int, ...] = (),
+                stamped: bool = False) -> StrechaSequence:
     """The sequence's images resized by ``scale`` (antialiased bilinear; only the ``scaled``
     views where given: a set from several cameras), the ``zoomed`` views' centres (1/2 of each
     side) resized back to the full size (a zoom lens at twice the focal length), the ``tilted``
@@ -60,7 +61,9 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
     size kept), the ``turned`` views then turned 90 degrees clockwise (portrait shots), written
     as PNGs to ``folder``; K, R and t follow: pixel centres scale about (-0.5, -0.5), a turned
     camera's K swaps its axes, and a tilted or turned camera's R and t turn about the optical
-    axis."""
+    axis. ``stamped``: a 192 x 40 px pattern of black and white 8 px blocks burnt into the same
+    pixels of every image, 20 px from the left and 10 px from the bottom (a video's time stamp),
+    and its mask written as ``folder/overlay_mask.png`` (black on it)."""
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
     paths, Ks, Rs, ts = [], [], [], []
     for v, path in enumerate(sequence.images):
@@ -88,12 +91,28 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
             image = torch.rot90(image, k=-1, dims=(-2, -1))
             K = torch.tensor([[K[1, 1], 0.0, height - 1 - K[1, 2]], [0.0, K[0, 0], K[0, 2]], [0.0, 0.0, 1.0]], dtype=torch.float64)
             R, t = turn @ R, turn @ t
+        if stamped:
+            image = image.clone()
+            image[..., stamp_region(image.shape[-2])[0], stamp_region(image.shape[-2])[1]] = STAMP
         paths.append(folder / f"{v:04d}.png")
         write_png(paths[-1], image.expand(3, -1, -1))
         Ks.append(K)
         Rs.append(R)
         ts.append(t)
+    if stamped:
+        mask = torch.full(tuple(image.shape[-2:]), 255, dtype=torch.uint8)
+        mask[stamp_region(image.shape[-2])] = 0
+        write_png(folder / "overlay_mask.png", mask.expand(3, -1, -1))
     return StrechaSequence(images=paths, K=torch.stack(Ks), R=torch.stack(Rs), t=torch.stack(ts))
+
+
+STAMP = ((torch.rand(5, 24, generator=torch.Generator().manual_seed(3)) > 0.5).repeat_interleave(8, 0)
+         .repeat_interleave(8, 1) * 255).to(torch.uint8)  # (40, 192): the burnt-in overlay of the stamped cases
+
+
+def stamp_region(height: int) -> tuple[slice, slice]:
+    """Rows and columns of the overlay in an image ``height`` px high."""
+    return slice(height - 10 - STAMP.shape[0], height - 10), slice(20, 20 + STAMP.shape[1])
 
 
 def read_merton(folder: Path) -> StrechaSequence:
@@ -117,7 +136,9 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "fountain_mixed": lambda: transformed(fountain, work / "inputs" / "fountain_mixed", scale=0.5, scaled=(3, 7)),
         "fountain_zoomed": lambda: transformed(fountain, work / "inputs" / "fountain_zoomed", zoomed=(3, 7)),
         "fountain_tilted": lambda: transformed(fountain, work / "inputs" / "fountain_tilted", tilted=(3, 7)),
+        "kitti06_stamped": lambda: transformed(kitti, work / "inputs" / "kitti06_stamped", stamped=True),
     }
+    made["kitti06_stamped_masked"] = made["kitti06_stamped"]
     chosen = {
         "fountain": fountain,
         "fountain_shuffled": subset(fountain, shuffle(11)),
@@ -157,11 +178,11 @@ def errors_row(R: torch.Tensor, t: torch.Tensor, sequence: StrechaSequence, inde
             f"rotation {float(errors.rotation.median()):.3f} deg (max {float(errors.rotation.max()):.3f}), consecutive rel. rot. {step} deg")
 
 
-def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Config, seed: int) -> str:
+def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Config, seed: int, mask: Path | None = None) -> str:
     start = time.perf_counter()
     try:
         model = torchsfm.reconstruct(sequence.images, sequence.K if with_K else None, config=config,
-                                     generator=torch.Generator().manual_seed(seed))
+                                     generator=torch.Generator().manual_seed(seed), masks=mask)
     except TorchSfmError as error:
         return f"failed: {error} ({time.perf_counter() - start:.1f} s)"
     seconds = time.perf_counter() - start
@@ -179,7 +200,7 @@ def colmap_pinhole(K: torch.Tensor) -> list[float]:
     return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5]
 
 
-def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
+def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool, mask: Path | None = None) -> str:
     os.environ.setdefault("GLOG_minloglevel", "2")  # pycolmap's progress log
     try:
         import pycolmap
@@ -192,10 +213,15 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool) -> str:
     images.mkdir(parents=True)
     for k, path in enumerate(sequence.images):
         shutil.copy(path, images / f"{k:04d}{path.suffix}")
+        if mask is not None:  # COLMAP's masks: <image name>.png in a folder of their own
+            (workdir / "masks").mkdir(exist_ok=True)
+            shutil.copy(mask, workdir / "masks" / f"{k:04d}{path.suffix}.png")
     K = sequence.K[0]
     start = time.perf_counter()
     database = workdir / "database.db"
     options = pycolmap.ImageReaderOptions()
+    if mask is not None:
+        options.mask_path = str(workdir / "masks")
     mapping = pycolmap.IncrementalPipelineOptions()
     if with_K:
         options.camera_model = "PINHOLE"
@@ -247,9 +273,10 @@ def main() -> None:
     chosen = cases(args.data, args.work, [name for name in args.cases.split(",") if name])
     for name, sequence in chosen.items():
         print(f"{name} ({len(sequence.images)} images)")
-        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config, args.seed)}", flush=True)
+        mask = sequence.images[0].parent / "overlay_mask.png" if name.endswith("_masked") else None
+        print(f"  torchsfm{' (no K)' if args.no_K else ''}: {run_torchsfm(sequence, not args.no_K, config, args.seed, mask)}", flush=True)
         if not args.no_colmap:
-            print(f"  pycolmap{' (no K)' if args.no_K else ''}: {run_pycolmap(sequence, args.work / name, not args.no_K)}", flush=True)
+            print(f"  pycolmap{' (no K)' if args.no_K else ''}: {run_pycolmap(sequence, args.work / name, not args.no_K, mask)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from torch import Tensor
 from torchsfm.calibration.files import calibration_yaml
 from torchsfm.calibration.stages import BoardViews, calibration_stages
 from torchsfm.config import Config, config_to_dict
+from torchsfm.errors import InputError
 from torchsfm.geometry.fundamental import fundamental_from_pose
 from torchsfm.io.atomic import atomic_write_bytes, atomic_write_text
 from torchsfm.io.colmap import colmap_text
@@ -197,16 +198,18 @@ def reconstruction_files(model: Reconstruction, summary: dict, frame: Tensor | N
 
 
 def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | Path, *, distortion: Tensor | None = None,
-                         config: Config | None = None, seed: int = 0, progress: Progress | None = None) -> dict:
+                         config: Config | None = None, seed: int = 0, progress: Progress | None = None,
+                         masks: str | Path | None = None) -> dict:
     """Reconstruct images (files or folders) with intrinsics K (and radial distortion; K None:
     estimated, see :func:`torchsfm.reconstruct`); write VRML, PLY, COLMAP text and a JSON summary
     into ``out`` (a set that split: the largest model there, each other one under
-    ``out/other_models/k/``). Returns the summary (``K``: the intrinsics used)."""
+    ``out/other_models/k/``). ``masks``: where features may be detected (:func:`mask_paths`).
+    Returns the summary (``K``: the intrinsics used)."""
     config = config or Config()
     start = time.perf_counter()
     paths = image_paths(inputs)
     model = reconstruct(paths, K, distortion=distortion, config=config, generator=torch.Generator().manual_seed(seed),
-                        progress=progress)
+                        progress=progress, masks=None if masks is None else mask_paths(masks, paths))
     summary = reconstruction_summary(model, time.perf_counter() - start, config)
     frame = read_image(paths[model.view_indices[0]]) if model.segmented_tracks is not None else None
     files = reconstruction_files(model, summary, frame)
@@ -214,6 +217,22 @@ def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | 
         progress("writing model files ...")
     write_files(Path(out), files)
     return summary
+
+
+def mask_paths(masks: str | Path, images: list[Path]) -> Path | list[Path | None]:
+    """The masks of ``images`` from a mask file (one for every image: a video's fixed overlay) or
+    a folder holding, as COLMAP's, ``<image file name>.png`` for each image that has one (the
+    others: the whole image). A folder that holds none of them is an error (a wrong folder)."""
+    masks = Path(masks)
+    if not masks.is_dir():
+        if not masks.is_file():
+            raise InputError(f"masks: {masks} is neither a mask image nor a folder of them")
+        return masks
+    found = [masks / f"{image.name}.png" for image in images]
+    found = [path if path.is_file() else None for path in found]
+    if all(path is None for path in found):
+        raise InputError(f"masks: {masks} holds no mask named as COLMAP's, <image file name>.png (e.g. {images[0].name}.png)")
+    return found
 
 
 def demo(out: str | Path, *, progress: Progress | None = None) -> dict:

@@ -83,7 +83,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
     config = _config(args)
     K, distortion = read_camera(args.K) if args.K is not None else (None, None)
     summary = reconstruct_sequence(args.images, K, args.out, distortion=distortion, config=config, seed=args.seed,
-                                   progress=_progress(args.quiet))
+                                   progress=_progress(args.quiet), masks=args.masks)
     if args.K is None:
         K = summary["K"]
         print(f"estimated intrinsics: f {K[0][0]:.1f} px, principal point ({K[0][2]:.1f}, {K[1][2]:.1f})")
@@ -123,6 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
     _job_options(sequence, K_required=False)
     sequence.add_argument("--sequential", action="store_true",
                           help="a video: match each frame with the next pairs.window frames only (pairs.mode=sequential)")
+    sequence.add_argument("--masks", type=Path, help="where features may be detected (not where black): one mask image for "
+                          "every image (a video's time stamp or logo), or a folder of masks named <image file name>.png (COLMAP's)")
     sequence.set_defaults(run=_reconstruct)
 
     calibrate = commands.add_parser("calibrate", help="calibrate a camera from chessboard photos (Zhang's method)")

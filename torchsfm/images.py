@@ -97,3 +97,48 @@ def same_size_batches(images: list[Tensor], batch: int) -> list[list[int]]:
 def sizes_named(images: list[Tensor]) -> str:
     """The distinct sizes of (C, H, W) images as text, e.g. ``384x256, 768x512 px``."""
     return ", ".join(f"{w}x{h}" for h, w in sorted({tuple(image.shape[-2:]) for image in images})) + " px"
+
+
+def read_mask(path: str | Path) -> Tensor:
+    """Read a mask image (COLMAP's convention: features only where it is not black) as (H, W)
+    bool, True where features may be detected."""
+    return read_image(path).amax(0) > 0
+
+
+def check_mask(mask: Tensor, image: Tensor, name: str = "mask") -> Tensor:
+    """An (H, W) mask (bool, or numbers: nonzero keeps) of a (C, H, W) image as bool; a
+    ShapeError naming ``name`` and both sizes where it does not fit the image."""
+    if not isinstance(mask, Tensor) or mask.dim() not in (2, 3) or (mask.dim() == 3 and mask.shape[0] != 1):
+        shape = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+        raise ShapeError(f"{name} must be an (H, W) or (1, H, W) tensor, got {shape}")
+    mask = mask.reshape(mask.shape[-2:])
+    if mask.shape != image.shape[-2:]:
+        raise ShapeError(f"{name} is {mask.shape[1]}x{mask.shape[0]} px, its image {image.shape[-1]}x{image.shape[-2]} px")
+    return mask if mask.dtype == torch.bool else mask != 0
+
+
+def reduce_mask(mask: Tensor, factor: int) -> Tensor:
+    """An (H, W) bool mask over ``factor`` × ``factor`` blocks -> (H // factor, W // factor): a
+    block keeps only where every pixel of it does (the blocks of :func:`reduce_image`)."""
+    if factor == 1:
+        return mask
+    return functional.max_pool2d((~mask)[None, None].float(), factor)[0, 0] == 0
+
+
+def inside_mask(points: Tensor, mask: Tensor | None) -> Tensor:
+    """(K,) bool: which (K, 2) pixel positions (x, y) fall on a pixel the (H, W) bool ``mask``
+    keeps (all of them without a mask)."""
+    if mask is None:
+        return torch.ones(points.shape[0], dtype=torch.bool, device=points.device)
+    H, W = mask.shape
+    x = points[:, 0].round().long().clamp(0, W - 1)
+    y = points[:, 1].round().long().clamp(0, H - 1)
+    return mask[y, x]
+
+
+def stacked_masks(masks: list[Tensor | None] | None, views: list[int], size: tuple[int, int]) -> Tensor | None:
+    """The (B, H, W) bool masks of ``views`` (of one size (H, W)) from per-view ``masks`` (None
+    entries: everywhere); None where no view of them has one."""
+    if masks is None or all(masks[v] is None for v in views):
+        return None
+    return torch.stack([torch.ones(size, dtype=torch.bool) if masks[v] is None else masks[v] for v in views])

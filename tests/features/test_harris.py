@@ -3,6 +3,7 @@ import torch
 from torch.testing import assert_close
 
 from torchsfm.config import HarrisConfig
+from torchsfm.errors import ShapeError
 from torchsfm.features.harris import HarrisCorners, biquadric_peaks, detect_corners, harris_response
 from torchsfm.testing import random_squares, render_squares, square_corners
 
@@ -65,3 +66,22 @@ def test_selection_shapes_batching_and_spread(grid):
 def test_a_flat_image_has_no_corners():
     corners = detect_corners(torch.full((1, 1, 64, 64), 0.5))
     assert corners.positions.shape == (1, 0, 2) and corners.of_image(0).shape == (0, 2)
+
+
+def test_a_mask_keeps_corners_off_its_pixels_and_out_of_the_relative_threshold():
+    # faint squares on the right, a high-contrast square on the left: the strong one's response
+    # sets the relative threshold over the whole image and hides the faint corners; masked out,
+    # it no longer does
+    squares = [(20.3, 40.7, 60.2, 90.4, 1.0), (110.6, 30.2, 140.1, 60.8, 0.03), (150.4, 90.3, 185.7, 130.5, 0.03)]
+    image = render_squares(squares, background=0.0)[None].float()
+    config = HarrisConfig(max_corners=100, spread_grid=0, relative_threshold=0.05)
+    mask = torch.ones(1, 160, 200, dtype=torch.bool)
+    mask[:, :, :100] = False
+    unmasked = detect_corners(image, config).of_image(0)
+    masked = detect_corners(image, config, mask).of_image(0)
+    assert int((unmasked[:, 0] >= 100).sum()) == 0  # the faint corners lose against the strong square
+    assert bool((masked[:, 0] >= 100).all())  # nothing on the masked pixels
+    faint = torch.tensor([[x, y] for x0, y0, x1, y1, _ in squares[1:] for x, y in ((x0, y0), (x1, y0), (x0, y1), (x1, y1))])
+    assert bool(((masked[:, None].double() - faint[None]).norm(dim=-1).amin(0) < 3).all())  # every faint corner found
+    with pytest.raises(ShapeError, match=r"mask must be \(1, 160, 200\)"):
+        detect_corners(image, config, mask[:, :, :50])

@@ -18,7 +18,7 @@ from kornia.filters import gaussian_blur2d
 from torch import Tensor, nn
 
 from torchsfm.config import HarrisConfig
-from torchsfm.errors import InputError
+from torchsfm.errors import InputError, ShapeError
 from torchsfm.features.filters import sobel_gradients, window_maximum
 
 
@@ -125,12 +125,14 @@ def _select(scores: Tensor, width: int, height: int, config: HarrisConfig) -> Te
     return chosen
 
 
-def detect_corners(image: Tensor, config: HarrisConfig | None = None) -> Corners:
+def detect_corners(image: Tensor, config: HarrisConfig | None = None, mask: Tensor | None = None) -> Corners:
     """Harris corners of a batch of grey images (Algorithm 3.2.1).
 
     Args:
         image: (B, 1, H, W) float intensities (any range; the threshold is relative).
         config: response, suppression, selection and sub-pixel settings.
+        mask: (B, H, W) bool, where corners may be (e.g. not on a video's fixed overlay); the
+            relative threshold is then taken over those pixels only. Default: everywhere.
 
     Returns:
         :class:`Corners` padded to the largest count in the batch.
@@ -150,7 +152,12 @@ def detect_corners(image: Tensor, config: HarrisConfig | None = None) -> Corners
     border = max(config.border, half)
     inside = torch.zeros_like(is_peak)
     inside[..., border:H - border, border:W - border] = True
-    strongest = response.flatten(1).amax(-1).clamp_min(1e-30)[:, None, None, None]
+    if mask is not None:
+        if mask.shape != (B, H, W):
+            raise ShapeError(f"mask must be ({B}, {H}, {W}) like the images, got {tuple(mask.shape)}")
+        inside &= mask[:, None]
+    usable = response if mask is None else torch.where(mask[:, None], response, 0.0)
+    strongest = usable.flatten(1).amax(-1).clamp_min(1e-30)[:, None, None, None]
     keep = is_peak & inside & (response > config.relative_threshold * strongest)
     positions, scores = [], []
     for b in range(B):

@@ -9,6 +9,7 @@ mapper (:mod:`torchsfm.sfm.mapping`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,7 +19,7 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import is_grey_bytes, read_image, reduce_image, sizes_named, to_grey_bytes
+from torchsfm.images import check_mask, is_grey_bytes, read_image, read_mask, reduce_image, reduce_mask, sizes_named, to_grey_bytes
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -43,7 +44,8 @@ def shared_focal(focals: list[float | None]) -> float | None:
 def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, distortion: Tensor | None = None,
                 names: list[str] | None = None, config: Config | None = None,
                 generator: torch.Generator | None = None, progress: Progress | None = None,
-                pipeline: Pipeline | None = None, moving_objects: str | None = None) -> Reconstruction:
+                pipeline: Pipeline | None = None, moving_objects: str | None = None,
+                masks: list[Tensor | str | Path | None] | Tensor | str | Path | None = None) -> Reconstruction:
     """Reconstruct a calibrated image sequence.
 
     Images given as paths are read here; one that cannot be read is listed in ``unregistered``
@@ -71,6 +73,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             model: ``moving_objects.enabled``) or ``"reconstruct"`` (and each moving body is
             reconstructed as its own model: ``model.objects``, each body's scale its own);
             None: as ``config`` says.
+        masks: where features may be detected (COLMAP's convention: not where a mask is black or
+            0): one (H, W) mask or mask file for every image (a video's fixed overlay: a time
+            stamp, a logo, the car's bonnet) or a list with one per image (None: the whole image).
 
     Returns:
         A :class:`~torchsfm.reconstruction.Reconstruction` of the registered views
@@ -98,7 +103,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise ShapeError(f"distortion must be (2,) or ({len(images)}, 2), got {tuple(distortion.shape)}")
     distortion = K.new_zeros(len(images), 2) if distortion is None else distortion.double().expand(len(images), 2)
     check_finite(distortion=distortion)
-    loaded, kept, unreadable, exif, colours = [], [], {}, [], []
+    masks = per_image_masks(masks, len(images))
+    loaded, kept, unreadable, exif, colours, loaded_masks = [], [], {}, [], [], []
     for v, image in enumerate(images):
         colour = None
         if isinstance(image, (str, Path)):
@@ -115,6 +121,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         loaded.append(image)
         colours.append(colour)
         kept.append(v)
+        loaded_masks.append(None if masks is None else masks(v, image))
     if len(loaded) < 2:
         raise NotEnoughDataError(f"only {len(loaded)} of {len(images)} images could be read: " + "; ".join(unreadable.values()))
     if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
@@ -130,6 +137,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     input_sizes = {v: (image.shape[-1], image.shape[-2]) for v, image in zip(kept, loaded)}  # (W, H) by input index
     if factor > 1:  # larger images: detection and matching at the working resolution
         loaded = [reduce_image(image, factor) for image in loaded]
+        loaded_masks = reduced_masks(loaded_masks, factor)
         K = K if estimate_focal else rescale_intrinsics(K, 1 / factor)
         exif = [None if focal is None else focal / factor for focal in exif]
     if pipeline is None:
@@ -137,8 +145,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
             pipeline.append(ReconstructObjects.from_config(config))
     state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
-                       progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif), colours=colours)
-    del loaded, colours  # the state holds the images now (and may replace them by lighter copies)
+                       progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif), colours=colours,
+                       masks=None if masks is None else loaded_masks)
+    del loaded, colours, loaded_masks  # the state holds the images now (and may replace them by lighter copies)
     state = pipeline(state)
     model = state.reconstruction
     model.timings = state.timings
@@ -156,6 +165,42 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             pixels, visible, labels = model.segmented_tracks
             model.segmented_tracks = (rescale_pixels(pixels, factor), visible, labels)
     return model
+
+
+def per_image_masks(masks: list[Tensor | str | Path | None] | Tensor | str | Path | None, count: int
+                    ) -> Callable[[int, Tensor], Tensor | None] | None:
+    """The ``masks`` argument of :func:`reconstruct` for ``count`` images as a function of an
+    image's index and its (C, H, W) tensor giving its (H, W) bool mask (or None): each mask file
+    read, and each mask checked against its image, once (one mask shared by a whole video is
+    one tensor, not one per frame). None without masks."""
+    if masks is None:
+        return None
+    given = [masks] * count if isinstance(masks, (Tensor, str, Path)) else list(masks)
+    if len(given) != count:
+        raise InputError(f"{len(given)} masks for {count} images: give one mask for all, or one per image (None for none)")
+    checked: dict[tuple[object, tuple[int, int]], Tensor] = {}
+
+    def mask_of(v: int, image: Tensor) -> Tensor | None:
+        mask = given[v]
+        if mask is None:
+            return None
+        key = (str(mask) if isinstance(mask, (str, Path)) else id(mask), tuple(image.shape[-2:]))
+        if key not in checked:
+            name = f"mask {mask}" if isinstance(mask, (str, Path)) else f"mask {v}"
+            checked[key] = check_mask(read_mask(mask) if isinstance(mask, (str, Path)) else mask, image, name)
+        return checked[key]
+
+    return mask_of
+
+
+def reduced_masks(masks: list[Tensor | None], factor: int) -> list[Tensor | None]:
+    """Per view (H, W) bool masks (or None) reduced by ``factor`` with their images, each distinct
+    mask once (:func:`~torchsfm.images.reduce_mask`)."""
+    reduced: dict[int, Tensor] = {}
+    for mask in masks:
+        if mask is not None and id(mask) not in reduced:
+            reduced[id(mask)] = reduce_mask(mask, factor)
+    return [None if mask is None else reduced[id(mask)] for mask in masks]
 
 
 def reduction_factor(size: tuple[int, int], max_size: int) -> int:

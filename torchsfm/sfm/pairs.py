@@ -27,7 +27,7 @@ from torch.nn import functional
 
 from torchsfm.config import HarrisConfig, PairsConfig, RansacConfig
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import same_size_batches, to_unit_float
+from torchsfm.images import reduce_mask, same_size_batches, stacked_masks, to_unit_float
 from torchsfm.matching.ncc import extract_patches, zero_mean_unit_norm
 from torchsfm.robust.models import HomographyModel
 from torchsfm.robust.ragged import pad_rows
@@ -52,11 +52,13 @@ class CoarseFeatures:
     valid: Tensor
 
 
-def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | None = None) -> CoarseFeatures:
+def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | None = None,
+                    masks: list[Tensor | None] | None = None) -> CoarseFeatures:
     """Harris corners and NCC patches of (1, H_v, W_v) grey images (uint8 or float in [0, 1])
     reduced so that every view is seen at one scale (:func:`reduction_factors`), a few views of
     one size and factor at a time (no full-resolution float copy of them all). ``focal``: (V,)
-    each view's focal length in pixels, where known."""
+    each view's focal length in pixels, where known; ``masks``: per view (H_v, W_v) bool, where
+    corners may be (None entries: everywhere), reduced with the image."""
     factors = reduction_factors(greys, config.coarse_size, focal, smallest=2 * (config.patch_half_size + 1) + 1)
     harris = HarrisConfig(max_corners=config.coarse_corners, spread_grid=4, border=config.patch_half_size + 1)
     positions: dict[int, Tensor] = {}
@@ -66,7 +68,8 @@ def coarse_features(greys: list[Tensor], config: PairsConfig, focal: Tensor | No
         for batch in same_size_batches([greys[v] for v in alike], 8):
             views = [alike[b] for b in batch]
             small = functional.avg_pool2d(to_unit_float(torch.stack([greys[v] for v in views])), factor)
-            corners = detect_corners(small, harris)
+            mask = stacked_masks(masks, views, greys[views[0]].shape[-2:])
+            corners = detect_corners(small, harris, None if mask is None else torch.stack([reduce_mask(m, factor) for m in mask]))
             for b, v in enumerate(views):
                 positions[v] = (corners.of_image(b).double() + 0.5) * factor - 0.5  # pixel centres of the reduced image
                 patches[v] = extract_patches(small[b], corners.of_image(b).double(), config.patch_half_size)
@@ -185,9 +188,10 @@ def bridge_pairs(features: CoarseFeatures, stranded: list[int], registered: list
 
 
 def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Generator | None = None,
-                   guided: bool = False, focal: Tensor | None = None) -> dict[tuple[int, int], Tensor | None]:
+                   guided: bool = False, focal: Tensor | None = None,
+                   masks: list[Tensor | None] | None = None) -> dict[tuple[int, int], Tensor | None]:
     """The view pairs (i < j) of (V, 1, H, W) grey images to match (:func:`select_pairs` on the
-    coarse features; ``focal`` (V,) pixels where known, see :func:`coarse_features`), each with
+    coarse features; ``focal`` (V,) pixels where known and ``masks``, see :func:`coarse_features`), each with
     its coarse homography (:func:`coarse_homographies`) where ``guided`` asks for it (None
     otherwise, and where none holds). The considered pairs' homographies are fitted once, for
     the selection and the guidance alike. Where the pairs with a homography leave the views in
@@ -195,7 +199,7 @@ def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Ge
     tried with one view's patches turned (:func:`turned_homographies`: portrait and tilted
     shots), with random draws of their own (the others' as without them), and the pairs a turn
     joins are matched too."""
-    features = coarse_features(greys, config, focal)
+    features = coarse_features(greys, config, focal, masks)
     scores = None if config.mode in ("sequential", "exhaustive") else pair_scores(features, config.ncc_threshold)
     considered = considered_pairs(scores, config, len(greys))
     homographies, inliers = {}, None

@@ -16,7 +16,7 @@ from kornia.feature import LAFDescriptor, SIFTFeature, get_laf_center, match_smn
 
 from torchsfm.camera import undistort_points
 from torchsfm.config import PairsConfig
-from torchsfm.images import to_grey_bytes, to_unit_float
+from torchsfm.images import inside_mask, to_grey_bytes, to_unit_float
 from torchsfm.sfm.pairs import fit_homographies, pairs_to_match
 from torchsfm.pipeline import ConfiguredStage
 
@@ -33,7 +33,7 @@ class DetectSiftFeatures(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         state.greys = [to_grey_bytes(image) for image in state.images]
         state.report(f"SIFT features of {len(state.images)} views")
-        state.raw, state.descriptors = sift_features(state.greys, self.config.pairs.sift_features)
+        state.raw, state.descriptors = sift_features(state.greys, self.config.pairs.sift_features, state.masks)
         state.corners = [undistort_points(raw, state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
         return state
 
@@ -48,7 +48,7 @@ class MatchSiftFeatures(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         config = self.config
         state.putative = {}
-        for i, j in pairs_to_match(state.greys, config.pairs, generator=state.generator, focal=state.focal_lengths()):
+        for i, j in pairs_to_match(state.greys, config.pairs, generator=state.generator, focal=state.focal_lengths(), masks=state.masks):
             state.report(f"matching views {i} and {j}")
             _, index = match_smnn(state.descriptors[i], state.descriptors[j], config.pairs.sift_ratio)
             if index.shape[0] >= config.reconstruction.min_pair_inliers:
@@ -74,34 +74,40 @@ class InBatches(nn.Module):
         return torch.cat([self.module(block) for block in patches.split(self.size)]) if patches.shape[0] else self.module(patches)
 
 
-def sift_features(greys: list[Tensor], num_features: int) -> tuple[list[Tensor], list[Tensor]]:
+def sift_features(greys: list[Tensor], num_features: int, masks: list[Tensor | None] | None = None
+                  ) -> tuple[list[Tensor], list[Tensor]]:
     """SIFT keypoint centres (K_v, 2) float64 pixels and descriptors (K_v, 128) of every view of
     (V, 1, H, W) grey images, one view at a time (Kornia's :class:`~kornia.feature.SIFTFeature`,
-    its patch descriptor applied :data:`DESCRIBED_PER_CALL` patches at a time)."""
+    its patch descriptor applied :data:`DESCRIBED_PER_CALL` patches at a time); only where each
+    view's (H, W) bool mask keeps, given ``masks`` (None entries: everywhere)."""
     sift = SIFTFeature(num_features=num_features)
     if isinstance(sift.descriptor, LAFDescriptor):
         sift.descriptor.descriptor = InBatches(sift.descriptor.descriptor, DESCRIBED_PER_CALL)
     points, descriptors = [], []
     with torch.no_grad():
-        for grey in greys:
+        for v, grey in enumerate(greys):
             frames, _, described = sift(to_unit_float(grey[None]))
-            points.append(get_laf_center(frames)[0].double())
-            descriptors.append(described[0])
+            centres = get_laf_center(frames)[0].double()
+            kept = inside_mask(centres, None if masks is None else masks[v])
+            points.append(centres[kept])
+            descriptors.append(described[0][kept])
     return points, descriptors
 
 
 def sift_homographies(greys: list[Tensor], pairs: list[tuple[int, int]], config: PairsConfig,
-                      generator: torch.Generator | None = None, described: dict[int, tuple[Tensor, Tensor]] | None = None
-                      ) -> dict[tuple[int, int], Tensor]:
+                      generator: torch.Generator | None = None, described: dict[int, tuple[Tensor, Tensor]] | None = None,
+                      masks: list[Tensor | None] | None = None) -> dict[tuple[int, int], Tensor]:
     """A homography (3, 3) mapping view i's pixels to view j's for each view pair (i, j) of
     (V, 1, H, W) grey images where one holds: RANSAC (:func:`~torchsfm.sfm.pairs.fit_homographies`)
     on the SIFT matches (mutual nearest descriptors passing the ratio test), ``min_score``
     inliers at least. Only the views of ``pairs`` are described; ``described`` (view -> keypoints,
-    descriptors) holds views described before and receives the new ones."""
+    descriptors) holds views described before and receives the new ones; ``masks`` as in
+    :func:`sift_features`."""
     described = {} if described is None else described
     new = sorted({v for pair in pairs for v in pair} - set(described))
     if new:
-        described.update(zip(new, zip(*sift_features([greys[v] for v in new], config.sift_features))))
+        described.update(zip(new, zip(*sift_features([greys[v] for v in new], config.sift_features,
+                                                      None if masks is None else [masks[v] for v in new]))))
     matches = []
     for i, j in pairs:
         (points_i, descriptors_i), (points_j, descriptors_j) = described[i], described[j]

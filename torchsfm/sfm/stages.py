@@ -26,7 +26,7 @@ from torchsfm.camera import FOCAL_PRIOR, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
-from torchsfm.images import check_image, is_grey_bytes, sizes_named, to_grey_bytes
+from torchsfm.images import check_image, check_mask, is_grey_bytes, sizes_named, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.samplers import side_generator
@@ -54,6 +54,8 @@ class ViewSet:
         estimate_focal: K is a placeholder to be estimated; exif_focal: the focal length (px)
             every image's EXIF records, if they agree (the estimate's start, refined later).
         generator: the random source of every RANSAC; report: progress messages.
+        masks: per view (H_v, W_v) bool, where features may be detected (None: everywhere), or
+            None for no masks at all.
         greys: V (1, H_v, W_v) uint8 grey images; raw: per view (K_v, 2) detected corners; corners:
             the same undistorted; descriptors: per view (K_v, D) (``pairs.matcher`` ``sift``);
             putative: matched corner indices (index1, index2) per view pair; homographies: each
@@ -73,6 +75,7 @@ class ViewSet:
     generator: torch.Generator = field(default_factory=lambda: torch.Generator().manual_seed(0))
     report: Progress = field(default=lambda message: None)
     colours: list[Tensor | None] | None = None
+    masks: list[Tensor | None] | None = None
     greys: list[Tensor] | None = None
     raw: list[Tensor] | None = None
     corners: list[Tensor] | None = None
@@ -91,20 +94,27 @@ class ViewSet:
     @classmethod
     def of(cls, images: list[Tensor], K: Tensor, *, distortion: Tensor | None = None, names: list[str] | None = None,
            generator: torch.Generator | None = None, progress: Progress | None = None,
-           estimate_focal: bool = False, exif_focal: float | None = None, colours: list[Tensor | None] | None = None) -> ViewSet:
+           estimate_focal: bool = False, exif_focal: float | None = None, colours: list[Tensor | None] | None = None,
+           masks: list[Tensor | None] | None = None) -> ViewSet:
         """A state for decoded images with K (3, 3) or (V, 3, 3). Images of different sizes (a
         photo set with portrait and landscape shots, several cameras) need their K: a focal
-        length is estimated (``estimate_focal``) for one camera, with one image size."""
+        length is estimated (``estimate_focal``) for one camera, with one image size.
+        ``masks``: per view an (H_v, W_v) mask of where features may be detected (nonzero) or
+        None (everywhere)."""
         V = len(images)
         for v, image in enumerate(images):
             check_image(image, f"image {v}")
+        if masks is not None:
+            if len(masks) != V:
+                raise InputError(f"{len(masks)} masks for {V} images: give one per image (None for none)")
+            masks = [None if mask is None else check_mask(mask, image, f"mask {v}") for v, (mask, image) in enumerate(zip(masks, images))]
         if estimate_focal and len({image.shape[-2:] for image in images}) > 1:
             raise InputError(f"images of different sizes ({sizes_named(images)}) need their intrinsics K: without K "
                              f"one camera, with one image size, is assumed")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
-                   estimate_focal=estimate_focal, exif_focal=exif_focal, colours=colours,
+                   estimate_focal=estimate_focal, exif_focal=exif_focal, colours=colours, masks=masks,
                    generator=generator or torch.Generator().manual_seed(0),
                    report=progress or (lambda message: None))
 
@@ -125,7 +135,7 @@ class DetectCorners(ConfiguredStage):
             if is_grey_bytes(image):
                 state.images[v] = state.greys[v].expand_as(image)
         state.report(f"corners of {len(state.images)} views")
-        state.raw = detect(state.greys, self.config.harris)
+        state.raw = detect(state.greys, self.config.harris, state.masks)
         state.corners = [undistort_points(raw.double(), state.K[v], state.distortion[v]) for v, raw in enumerate(state.raw)]
         return state
 
@@ -141,7 +151,7 @@ class MatchPairs(ConfiguredStage):
         objects = self.config.moving_objects
         state.putative, state.homographies = putative_matches(state.greys, state.raw, self.config, state.generator, state.report,
                                                               other_motions=objects.enabled and objects.reconstruct_objects,
-                                                              focal=state.focal_lengths())
+                                                              focal=state.focal_lengths(), masks=state.masks)
         return state
 
 
@@ -279,7 +289,7 @@ class BridgeWithSift(RetryStage):
     def forward(self, state: ViewSet) -> ViewSet:
         if len(state.reconstruction.view_indices) == len(state.images):
             return state
-        features = coarse_features(state.greys, self.config.pairs, state.focal_lengths())  # once: every round ranks partners by them
+        features = coarse_features(state.greys, self.config.pairs, state.focal_lengths(), state.masks)  # once: every round ranks partners by them
         described: dict[int, tuple[Tensor, Tensor]] = {}  # SIFT of the views described so far
         tried: set[tuple[int, int]] = set()
         while True:  # again while the model grows: the views it gained bring new partners
@@ -295,7 +305,7 @@ class BridgeWithSift(RetryStage):
             unturned = [pair for pair in candidates if not set(pair) & turned]
             state.report(f"{len(stranded)} views left out: {len(candidates)} pairs may link them, {len(homographies)} of them "
                          f"with a view turned against the other; SIFT homographies for {len(unturned)}")
-            homographies.update(sift_homographies(state.greys, unturned, self.config.pairs, state.generator, described))
+            homographies.update(sift_homographies(state.greys, unturned, self.config.pairs, state.generator, described, state.masks))
             putative = guided_matches(state.greys, state.raw, homographies, self.config, state.report)
             groups = [registered, *(other.view_indices for other in state.reconstruction.other_models),
                       *(list(key) for key in state.pairs if not set(key) & set(registered))]  # links among left-out views stand

@@ -14,7 +14,7 @@ from torchsfm.config import Config, HarrisConfig, RansacConfig
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.features.harris import detect_corners
-from torchsfm.images import same_size_batches, to_unit_float
+from torchsfm.images import same_size_batches, stacked_masks, to_unit_float
 from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_candidates, match_corners
@@ -48,20 +48,22 @@ class PairMatches:
     other_motion: tuple[Tensor, Tensor] | None = None
 
 
-def detect(greys: list[Tensor], config: HarrisConfig) -> list[Tensor]:
+def detect(greys: list[Tensor], config: HarrisConfig, masks: list[Tensor | None] | None = None) -> list[Tensor]:
     """Corners of every view of (1, H_v, W_v) grey images (uint8 or float in [0, 1]), detected
     ``DETECTION_CHUNK`` views of one size per batched call (the Harris response's intermediate
-    maps of a whole video would not fit in memory at once)."""
+    maps of a whole video would not fit in memory at once); only where each view's (H_v, W_v)
+    bool mask keeps, given ``masks`` (None entries: everywhere)."""
     corners: dict[int, Tensor] = {}
     for views in same_size_batches(greys, DETECTION_CHUNK):
-        detected = detect_corners(to_unit_float(torch.stack([greys[v] for v in views])), config)
+        batch_masks = stacked_masks(masks, views, greys[views[0]].shape[-2:])
+        detected = detect_corners(to_unit_float(torch.stack([greys[v] for v in views])), config, batch_masks)
         for b, v in enumerate(views):
             corners[v] = detected.of_image(b)
     return [corners[v] for v in range(len(greys))]
 
 
 def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, generator: torch.Generator, report: Progress,
-                     other_motions: bool = False, focal: Tensor | None = None
+                     other_motions: bool = False, focal: Tensor | None = None, masks: list[Tensor | None] | None = None
                      ) -> tuple[dict[tuple[int, int], tuple[Tensor, Tensor]], dict[tuple[int, int], Tensor | None]]:
     """NCC + strength-measure matches of the view pairs chosen by ``config.pairs``
     (:mod:`torchsfm.sfm.pairs`), at the detected (``raw``) corners, with the search disc centred
@@ -71,8 +73,9 @@ def putative_matches(greys: list[Tensor], raw: list[Tensor], config: Config, gen
     pair, not by the number of pairs). Also returns each matched pair's coarse homography (None
     where none holds or ``pairs.guided`` is off). ``other_motions``: see :func:`guided_matches`;
     ``focal``: (V,) the views' focal lengths in pixels where known (coarse matching at one
-    angular resolution, :func:`~torchsfm.sfm.pairs.coarse_features`)."""
-    homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided, focal=focal)
+    angular resolution, :func:`~torchsfm.sfm.pairs.coarse_features`); ``masks``: per view where
+    coarse corners may be."""
+    homographies = pairs_to_match(greys, config.pairs, generator=generator, guided=config.pairs.guided, focal=focal, masks=masks)
     return guided_matches(greys, raw, homographies, config, report, other_motions), homographies
 
 

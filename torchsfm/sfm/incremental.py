@@ -133,18 +133,21 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             raise InputError(f"moving_objects must be 'reject' or 'reconstruct', got {moving_objects!r}")
         config = replace(config, moving_objects=replace(config.moving_objects, enabled=True,
                                                         reconstruct_objects=moving_objects == "reconstruct"))
-    factor = reduction_factor(max((image.shape[-2:] for image in loaded), key=max), config.reconstruction.max_image_size)
+    # larger images: detection and matching at a working resolution, each image reduced by its own
+    # factor (a set from several cameras keeps its smaller images whole: one factor for all would
+    # shrink them with the largest and leave them that much coarser than the rest)
+    factors = [reduction_factor(image.shape[-2:], config.reconstruction.max_image_size) for image in loaded]
+    factor_of = dict(zip(kept, factors))  # by input index
     input_sizes = {v: (image.shape[-1], image.shape[-2]) for v, image in zip(kept, loaded)}  # (W, H) by input index
-    if factor > 1:  # larger images: detection and matching at the working resolution
-        loaded = [reduce_image(image, factor) for image in loaded]
-        loaded_masks = reduced_masks(loaded_masks, factor)
-        K = K if estimate_focal else rescale_intrinsics(K, 1 / factor)
-        exif = [None if focal is None else focal / factor for focal in exif]
+    loaded = [reduce_image(image, factor) for image, factor in zip(loaded, factors)]
+    loaded_masks = reduced_masks(loaded_masks, factors)
+    exif = [None if focal is None else focal / factor for focal, factor in zip(exif, factors)]
+    K = K[kept] if estimate_focal else torch.stack([rescale_intrinsics(K[v], 1 / factor_of[v]) for v in kept])
     if pipeline is None:
         pipeline = default_pipeline(config)
         if config.moving_objects.enabled and config.moving_objects.reconstruct_objects:
             pipeline.append(ReconstructObjects.from_config(config))
-    state = ViewSet.of(loaded, K[kept], distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
+    state = ViewSet.of(loaded, K, distortion=distortion[kept], names=[names[v] for v in kept], generator=generator,
                        progress=progress, estimate_focal=estimate_focal, exif_focal=shared_focal(exif), colours=colours,
                        masks=None if masks is None else loaded_masks)
     del loaded, colours, loaded_masks  # the state holds the images now (and may replace them by lighter copies)
@@ -158,12 +161,12 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     model.unregistered = {**{kept[v]: reason for v, reason in model.unregistered.items()}, **unreadable}
     model.moving_objects = {tuple(kept[v] for v in triplet): result for triplet, result in model.moving_objects.items()}
     model.moving_rejections_per_view = {kept[v]: count for v, count in model.moving_rejections_per_view.items()}
-    if factor > 1:
+    if max(factors) > 1:
         for part in (model, *model.other_models, *bodies):
-            to_input_resolution(part, factor, [input_sizes[v] for v in part.view_indices])
+            to_input_resolution(part, [factor_of[v] for v in part.view_indices], [input_sizes[v] for v in part.view_indices])
         if model.segmented_tracks is not None:
             pixels, visible, labels = model.segmented_tracks
-            model.segmented_tracks = (rescale_pixels(pixels, factor), visible, labels)
+            model.segmented_tracks = (rescale_pixels(pixels, torch.tensor(factors, dtype=pixels.dtype)[:, None, None]), visible, labels)
     return model
 
 
@@ -193,14 +196,14 @@ def per_image_masks(masks: list[Tensor | str | Path | None] | Tensor | str | Pat
     return mask_of
 
 
-def reduced_masks(masks: list[Tensor | None], factor: int) -> list[Tensor | None]:
-    """Per view (H, W) bool masks (or None) reduced by ``factor`` with their images, each distinct
-    mask once (:func:`~torchsfm.images.reduce_mask`)."""
-    reduced: dict[int, Tensor] = {}
-    for mask in masks:
-        if mask is not None and id(mask) not in reduced:
-            reduced[id(mask)] = reduce_mask(mask, factor)
-    return [None if mask is None else reduced[id(mask)] for mask in masks]
+def reduced_masks(masks: list[Tensor | None], factors: list[int]) -> list[Tensor | None]:
+    """Per view (H, W) bool masks (or None) reduced by each view's factor with their images, each
+    distinct mask once per factor (:func:`~torchsfm.images.reduce_mask`)."""
+    reduced: dict[tuple[int, int], Tensor] = {}
+    for mask, factor in zip(masks, factors):
+        if mask is not None and (id(mask), factor) not in reduced:
+            reduced[(id(mask), factor)] = reduce_mask(mask, factor)
+    return [None if mask is None else reduced[(id(mask), factor)] for mask, factor in zip(masks, factors)]
 
 
 def reduction_factor(size: tuple[int, int], max_size: int) -> int:
@@ -209,10 +212,12 @@ def reduction_factor(size: tuple[int, int], max_size: int) -> int:
     return max(1, -(-max(size) // max_size)) if max_size else 1
 
 
-def to_input_resolution(model: Reconstruction, factor: int, sizes: list[tuple[int, int]]) -> None:
-    """A model computed on images reduced by ``factor``, in place: its intrinsics and keypoints
-    in pixels of the input images of ``sizes`` (W, H), one per view of the model; poses and
-    points are unchanged."""
-    model.cameras = replace(model.cameras, K=rescale_intrinsics(model.cameras.K, factor))
-    model.keypoints = rescale_pixels(model.keypoints, factor)
+def to_input_resolution(model: Reconstruction, factors: list[int], sizes: list[tuple[int, int]]) -> None:
+    """A model computed on images reduced by ``factors``, in place: its intrinsics and keypoints
+    in pixels of the input images of ``sizes`` (W, H); one factor and size per view of the model.
+    Poses and points are unchanged."""
+    K = torch.stack([rescale_intrinsics(K, factor) for K, factor in zip(model.cameras.K, factors)]) if factors else model.cameras.K
+    model.cameras = replace(model.cameras, K=K)
+    scale = torch.tensor(factors, dtype=model.keypoints.dtype)[model.observation_views] if factors else model.keypoints.new_ones(0)
+    model.keypoints = rescale_pixels(model.keypoints, scale[:, None])
     model.image_sizes = torch.tensor([list(size) for size in sizes], dtype=model.image_sizes.dtype)

@@ -10,6 +10,7 @@ from torchsfm.actions import SAMPLE, mask_paths
 from torchsfm.cli import build_parser
 from torchsfm.config import PairsConfig
 from torchsfm.errors import InputError, ShapeError
+from torchsfm.evaluation import camera_errors
 from torchsfm.images import inside_mask, read_image, read_mask, reduce_mask
 from torchsfm.sfm.incremental import per_image_masks
 from torchsfm.sfm.pairs import coarse_features
@@ -101,3 +102,60 @@ def test_masks_on_the_command_line_follow_colmaps_folder_convention(tmp_path):
         mask_paths(tmp_path / "nothing", images)
     args = build_parser().parse_args(["reconstruct", "a.jpg", "b.jpg", "--out", "o", "--masks", str(folder)])
     assert args.masks == folder
+
+
+def _forward_pair(still: int, forward: float, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    """(1, N, 4) matches of a camera driving ``forward`` along its axis past 400 points 5-50 away
+    (0.2 px noise per coordinate), then ``still`` matches at the same pixels in both images (an
+    overlay), and the pair's true F (1, 3, 3)."""
+    from torchsfm.camera import normalized_to_pixels
+    from torchsfm.geometry.fundamental import fundamental_from_pose
+
+    K = torch.tensor([[718.0, 0.0, 607.0], [0.0, 718.0, 185.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    points = torch.rand(400, 3, generator=generator, dtype=torch.float64) * torch.tensor([20.0, 6.0, 45.0]) - torch.tensor([10.0, 3.0, -5.0])
+    x1 = normalized_to_pixels(points[:, :2] / points[:, 2:], K)
+    moved = points - torch.tensor([0.0, 0.0, forward], dtype=torch.float64)
+    x2 = normalized_to_pixels(moved[:, :2] / moved[:, 2:], K)
+    noisy = torch.cat([x1, x2], -1) + 0.2 * torch.randn(400, 4, generator=generator, dtype=torch.float64)
+    overlay = torch.rand(still, 2, generator=generator, dtype=torch.float64) * torch.tensor([190.0, 40.0]) + torch.tensor([20.0, 320.0])
+    data = torch.cat([noisy, overlay.repeat(1, 2)])[None]
+    F = fundamental_from_pose(K, K, torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, -forward], dtype=torch.float64))
+    return data, F[None]
+
+
+def test_matches_fixed_in_the_image_while_the_scene_moves_are_found_and_nothing_else():
+    from torchsfm.sfm.view_pairs import fixed_in_image
+
+    generator = torch.Generator().manual_seed(0)
+    data, F = _forward_pair(60, 1.0, generator)
+    fixed = fixed_in_image(data, torch.ones(data.shape[:2], dtype=torch.bool), F)[0]
+    assert fixed[400:].all() and not fixed[:400].any()  # the overlay, and no scene point (some are near the epipole)
+    inliers = torch.ones(data.shape[:2], dtype=torch.bool)
+    inliers[0, 400:] = False  # only the inliers count: outliers are not judged
+    assert not fixed_in_image(data, inliers, F).any()
+    data, F = _forward_pair(60, 0.0, generator)  # the camera standing still: nothing moves, nothing is judged
+    assert not fixed_in_image(data, torch.ones(data.shape[:2], dtype=torch.bool), F).any()
+
+
+def test_an_overlay_in_a_driving_video_is_no_part_of_the_model_without_a_mask(shared_data):
+    """KITTI 06 with a block pattern burnt into every frame: its matches stay put while the scene
+    moves, so verification does not keep them, no model point lies inside it (corners on its border
+    move with the scene behind them) and the cameras are as accurate as without it (checked
+    without the rule: 88 overlay points with some 1500 observations in the model; at seed 2 the
+    cameras bent towards their zero motion, 0.30° median rotation error)."""
+    from torchsfm.io.datasets import read_kitti_odometry
+
+    kitti = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
+    blocks = torch.rand(5, 24, generator=torch.Generator().manual_seed(3)) > 0.5
+    pattern = (blocks.repeat_interleave(8, 0).repeat_interleave(8, 1) * 255).to(torch.uint8)
+    frames = []
+    for path in kitti.images:
+        image = read_image(path).clone()
+        image[..., 320:360, 20:212] = pattern
+        frames.append(image)
+    model = torchsfm.reconstruct(frames, kitti.K, generator=torch.Generator().manual_seed(0))
+    x, y = model.keypoints[:, 0], model.keypoints[:, 1]
+    assert model.num_views == 51
+    assert int(((x > 23) & (x < 208) & (y > 323) & (y < 356)).sum()) == 0  # its border's corners hold the scene's texture too
+    errors = camera_errors(model.cameras.R, model.cameras.t, kitti.R, kitti.t)
+    assert float(errors.centre.median()) < 0.0015 * errors.extent and float(errors.rotation.median()) < 0.12

@@ -4,6 +4,7 @@ on the tracks built from them."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -15,6 +16,7 @@ from torchsfm.estimators.two_view_geometry import estimate_fundamental
 from torchsfm.errors import DegenerateConfigurationError
 from torchsfm.features.harris import detect_corners
 from torchsfm.images import same_size_batches, stacked_masks, to_unit_float
+from torchsfm.geometry.fundamental import sampson_error
 from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
 from torchsfm.matching.matcher import match_candidates, match_corners
@@ -31,6 +33,7 @@ from torchsfm.pipeline import Progress
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
 VERIFY_BATCH = 32  # view pairs per batched verification call
+FIXED_SIGNIFICANCE = 1e-3  # chance that noise leaves a still point's two detections as close as a match fixed in the image
 
 
 @dataclass
@@ -211,7 +214,9 @@ def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners
     ``VERIFY_BATCH`` pairs (one call each: the engine's rounds run on the pairs still drawing).
     With ``other_motions`` (moving bodies to be reconstructed), a second F is fitted to each
     pair's outliers, and where it keeps ``moving_objects.min_object_tracks`` of them they are
-    the pair's ``other_motion``: a moving object's matches, which one F per pair throws away."""
+    the pair's ``other_motion``: a moving object's matches, which one F per pair throws away.
+    Matches that stay where they are while the pair's scene moves (:func:`fixed_in_image`: a
+    video's burnt-in overlay) are not inliers."""
     report(f"verifying {len(putative)} pairs")
     homography_config = RansacConfig(inlier_threshold=config.reconstruction.homography_threshold)
     keys = list(putative)
@@ -220,7 +225,7 @@ def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners
         chunk = keys[first:first + VERIFY_BATCH]
         data, valid = pad_rows([torch.cat([corners[i][putative[(i, j)][0]], corners[j][putative[(i, j)][1]]], -1) for i, j in chunk])
         fundamental = estimate_fundamental(data[..., :2], data[..., 2:], valid=valid, config=config, generator=generator)
-        inliers = fundamental.inlier_mask  # (B, N)
+        inliers = fundamental.inlier_mask & ~fixed_in_image(data, fundamental.inlier_mask, fundamental.F)  # (B, N)
         kept = torch.nonzero(fundamental.success & (inliers.sum(-1) >= config.reconstruction.min_pair_inliers)).flatten()
         if kept.numel() == 0:
             continue
@@ -234,6 +239,23 @@ def verify_pairs(putative: dict[tuple[int, int], tuple[Tensor, Tensor]], corners
             other = None if other is None else (index1[other[: index1.numel()]], index2[other[: index1.numel()]])
             result[chunk[b]] = PairMatches(index1[mask], index2[mask], ratio, fundamental.F[b], other)
     return result
+
+
+def fixed_in_image(data: Tensor, inliers: Tensor, F: Tensor) -> Tensor:
+    """(B, N) bool: which of B pairs' (B, N, 4) matches (x1, x2) are fixed in the image — their two
+    positions closer than noise would leave even a point that does not move, in a pair whose
+    ``inliers`` (B, N) do move: an overlay burnt into a video (a time stamp, a logo), which looks
+    like a point at infinity to a camera that drives straight and bends the cameras towards its
+    zero motion where it turns. With σ the pair's noise (1.4826 × the median Sampson distance of
+    its inliers to F (B, 3, 3)), a still point's displacement d has |d|² ~ 2σ²χ²(2), so |d| < 2σ√α
+    has probability α (``FIXED_SIGNIFICANCE``) and |d| > 2σ√ln(1/α) too: the pair moves where the
+    median inlier exceeds that. Identical image content gives identical sub-pixel corners (|d| = 0);
+    a point's independent detections in two images never come as close but by that chance."""
+    x1, x2 = data[..., :2], data[..., 2:]
+    moved = (x2 - x1).norm(dim=-1)
+    sigma = 1.4826 * torch.where(inliers, sampson_error(F, x1, x2).sqrt(), torch.nan).nanmedian(-1).values
+    moving = torch.where(inliers, moved, torch.nan).nanmedian(-1).values > 2 * sigma * math.sqrt(math.log(1 / FIXED_SIGNIFICANCE))
+    return inliers & moving[:, None] & (moved < 2 * sigma[:, None] * math.sqrt(FIXED_SIGNIFICANCE))
 
 
 def second_motions(data: Tensor, outliers: Tensor, config: Config, generator: torch.Generator) -> list[Tensor | None]:

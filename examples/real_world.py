@@ -12,6 +12,7 @@ degrees (turned about the optical axis); the KITTI
 odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
 it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away),
 and with a time stamp burnt into every frame, without and with its mask (``kitti06_stamped``, ``kitti06_stamped_masked``);
+fountain-P11 seen through a lens with radial distortion k1 = -0.02 that K does not describe (``fountain_distorted``);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
@@ -19,7 +20,8 @@ never used to choose any setting); and, where
 the ground truth (centre error as a share of the path extent, rotation error; medians and
 maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping; with
-``--no-K`` its own default: one focal length from its prior, refined, the principal point at the centre).
+``--no-K`` its own default, SIMPLE_RADIAL: one focal length from its prior and one radial distortion coefficient,
+refined, the principal point at the centre).
 
     python examples/real_world.py [--data ../shared/data] [--cases fountain_shuffled,kitti06] [--no-colmap] [--seed S] [--set KEY=VALUE]
 """
@@ -37,7 +39,7 @@ import torch.nn.functional as functional
 from kornia.geometry.transform import warp_perspective
 
 import torchsfm
-from torchsfm.camera import decompose_projection
+from torchsfm.camera import decompose_projection, undistort_points
 from torchsfm.config import with_overrides
 from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors
@@ -54,7 +56,7 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = (),
                 scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = (), tilted: tuple[int, ...] = (),
-                stamped: bool = False) -> StrechaSequence:
+                stamped: bool = False, distorted: float = 0.0) -> StrechaSequence:
     """The sequence's images resized by ``scale`` (antialiased bilinear; only the ``scaled``
     views where given: a set from several cameras), the ``zoomed`` views' centres (1/2 of each
     side) resized back to the full size (a zoom lens at twice the focal length), the ``tilted``
@@ -64,7 +66,9 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
     camera's K swaps its axes, and a tilted or turned camera's R and t turn about the optical
     axis. ``stamped``: a 192 x 40 px pattern of black and white 8 px blocks burnt into the same
     pixels of every image, 20 px from the left and 10 px from the bottom (a video's time stamp),
-    and its mask written as ``folder/overlay_mask.png`` (black on it)."""
+    and its mask written as ``folder/overlay_mask.png`` (black on it). ``distorted``: every image
+    resampled as a lens with that radial coefficient k1 (normalized coordinates, about the
+    principal point) would see it, K, R and t unchanged (a camera whose distortion nobody gives)."""
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
     paths, Ks, Rs, ts = [], [], [], []
     for v, path in enumerate(sequence.images):
@@ -92,6 +96,8 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
             image = torch.rot90(image, k=-1, dims=(-2, -1))
             K = torch.tensor([[K[1, 1], 0.0, height - 1 - K[1, 2]], [0.0, K[0, 0], K[0, 2]], [0.0, 0.0, 1.0]], dtype=torch.float64)
             R, t = turn @ R, turn @ t
+        if distorted:
+            image = radially_distorted(image, K, distorted)
         if stamped:
             image = image.clone()
             image[..., stamp_region(image.shape[-2])[0], stamp_region(image.shape[-2])[1]] = STAMP
@@ -105,6 +111,17 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
         mask[stamp_region(image.shape[-2])] = 0
         write_png(folder / "overlay_mask.png", mask.expand(3, -1, -1))
     return StrechaSequence(images=paths, K=torch.stack(Ks), R=torch.stack(Rs), t=torch.stack(ts))
+
+
+def radially_distorted(image: torch.Tensor, K: torch.Tensor, k1: float) -> torch.Tensor:
+    """A (C, H, W) uint8 image as a lens with radial coefficient k1 would record it: each output
+    pixel samples the ideal image where :func:`~torchsfm.camera.undistort_points` puts it."""
+    height, width = image.shape[-2:]
+    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
+    ideal = undistort_points(torch.stack([xs.flatten(), ys.flatten()], -1), K, torch.tensor([k1, 0.0], dtype=torch.float64))
+    grid = torch.stack([2 * ideal[:, 0] / (width - 1) - 1, 2 * ideal[:, 1] / (height - 1) - 1], -1).reshape(1, height, width, 2)
+    sampled = functional.grid_sample(image[None].float(), grid.float(), mode="bilinear", padding_mode="zeros", align_corners=True)
+    return sampled[0].round().clamp(0, 255).byte()
 
 
 STAMP = ((torch.rand(5, 24, generator=torch.Generator().manual_seed(3)) > 0.5).repeat_interleave(8, 0)
@@ -139,6 +156,7 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "fountain_zoomed": lambda: transformed(fountain, work / "inputs" / "fountain_zoomed", zoomed=(3, 7)),
         "fountain_tilted": lambda: transformed(fountain, work / "inputs" / "fountain_tilted", tilted=(3, 7)),
         "kitti06_stamped": lambda: transformed(kitti, work / "inputs" / "kitti06_stamped", stamped=True),
+        "fountain_distorted": lambda: transformed(fountain, work / "inputs" / "fountain_distorted", distorted=-0.02),
     }
     made["kitti06_stamped_masked"] = made["kitti06_stamped"]
     chosen = {
@@ -230,9 +248,9 @@ def run_pycolmap(sequence: StrechaSequence, workdir: Path, with_K: bool, mask: P
         options.camera_params = ",".join(str(v) for v in colmap_pinhole(K))
         mapping.ba_refine_focal_length = False
         mapping.ba_refine_principal_point = False
-    else:  # COLMAP's own way without K: one focal length from its prior, refined; principal point at the centre
-        options.camera_model = "SIMPLE_PINHOLE"
-    mapping.ba_refine_extra_params = False
+    else:  # COLMAP's own default without K: focal length from its prior and k1, refined; principal point at the centre
+        options.camera_model = "SIMPLE_RADIAL"
+    mapping.ba_refine_extra_params = not with_K
     per_view = with_K and not bool((sequence.K == K).all())  # Merton's K differ between views
     mode = pycolmap.CameraMode.PER_IMAGE if per_view else pycolmap.CameraMode.SINGLE
     pycolmap.extract_features(database, images, camera_mode=mode, reader_options=options)

@@ -442,8 +442,9 @@ class ReconstructionConfig:
     survive the epipolar and reprojection tests (``bundle_adjustment.loss`` stays the plain least
     squares of :func:`torchsfm.bundle_adjust`). Without K, the last adjustments also refine the
     ``refined_intrinsics`` of the K all views share (comma-separated: ``f`` for one square-pixel
-    focal length or ``fx``, ``fy``, and ``cx``, ``cy``), each kept only where the data determine
-    it (:func:`torchsfm.sfm.mapping.refine_intrinsics`).
+    focal length or ``fx``, ``fy``, and ``cx``, ``cy``, and ``k1``: one radial distortion
+    coefficient, the model's cameras then carrying it and its keypoints as detected), each kept
+    only where the data determine it (:func:`torchsfm.sfm.mapping.refine_intrinsics`).
     """
 
     min_pair_inliers: int = 30
@@ -465,9 +466,9 @@ class ReconstructionConfig:
     def __post_init__(self) -> None:
         _require_choices(self)
         names = [name for name in self.refined_intrinsics.split(",") if name]
-        _require(all(name in ("f", "fx", "fy", "cx", "cy") for name in names) and len(set(names)) == len(names)
+        _require(all(name in ("f", "fx", "fy", "cx", "cy", "k1") for name in names) and len(set(names)) == len(names)
                  and not ("f" in names and {"fx", "fy"} & set(names)), "refined_intrinsics", self.refined_intrinsics,
-                 "distinct names of f (or fx, fy), cx, cy, comma-separated")
+                 "distinct names of f (or fx, fy), cx, cy, k1, comma-separated")
         _require(self.retriangulations >= 0, "retriangulations", self.retriangulations, "must be >= 0")
         _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
         _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")

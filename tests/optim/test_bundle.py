@@ -1,3 +1,4 @@
+import copy
 import math
 
 import pytest
@@ -184,6 +185,31 @@ def test_shared_intrinsics_are_recovered_exactly_from_a_wrong_start(solver):
     result = bundle_adjust(start, config=config)
     assert result.final_cost < 1e-12 * start.observations.shape[0]
     assert_close(result.problem.intrinsics, truth.intrinsics, rtol=0, atol=1e-6)  # pixels
+
+
+@pytest.mark.parametrize("solver", ["dense", "cg"])
+def test_a_shared_radial_coefficient_is_recovered_exactly_with_the_intrinsics(solver):
+    """Noise-free ring seen through radial distortion k1 = -0.05 (observations made with it),
+    adjusted from k1 = 0 and a K 2 % and 4 px off: the true k1 and K, zero cost; and the
+    distorted problem's residuals are those of its own projection (checked against the model)."""
+    truth, start = _ring("pinhole", cameras=8, points=300, tilt=0.15)
+    distorted = copy.copy(truth)
+    distorted.radial = -0.05
+    observed = distorted.residuals() + truth.observations  # the predictions of the distorted cameras
+    c, p = truth.camera_index, truth.point_index
+    camera_point = (truth.rotations[c] @ truth.points[p][..., None])[..., 0] + truth.translations[c]
+    normalized = camera_point[:, :2] / camera_point[:, 2:]
+    K = truth.intrinsics[c]
+    expected = (K[:, :2, :2] @ (normalized * (1 - 0.05 * normalized.square().sum(-1, keepdim=True)))[..., None])[..., 0] + K[:, :2, 2]
+    assert_close(observed, expected, rtol=0, atol=1e-9)
+    start.observations = observed
+    start.intrinsics = start.intrinsics * torch.tensor([[1.02, 1, 1], [1, 1.02, 1], [1, 1, 1]], **DOUBLE)
+    start.intrinsics[:, 0, 2] += 4
+    start.shared_intrinsics, start.fixed_cameras = ("f", "cx", "cy", "k1"), torch.arange(8) == 0
+    result = bundle_adjust(start, config=BundleAdjustmentConfig(linear_solver=solver))
+    assert result.final_cost < 1e-12 * start.observations.shape[0]
+    assert abs(result.problem.radial + 0.05) < 1e-9
+    assert_close(result.problem.intrinsics, truth.intrinsics, rtol=0, atol=1e-6)
 
 
 def test_a_shared_square_pixel_focal_length_moves_fx_and_fy_together():

@@ -12,9 +12,10 @@ Camera models:
 * ``pinhole`` — torchsfm's calibrated camera: pixels = K (R X + t) dehomogenized, K fixed;
   6 parameters per camera (a rotation increment R ← exp([ω]x) R, and t). With
   ``shared_intrinsics`` one K common to every camera is adjusted too — the named ones of
-  ``f`` (fx and fy together: square pixels), ``fx``, ``fy``, ``cx``, ``cy``: m ≤ 4 global
-  parameters, a border on the reduced camera system (the camera solve gets m more right-hand
-  sides and an m×m Schur complement gives the intrinsics' step).
+  ``f`` (fx and fy together: square pixels), ``fx``, ``fy``, ``cx``, ``cy`` and the radial
+  coefficient ``k1`` (pixels = K x_n (1 + k1 |x_n|²), x_n = (X/Z, Y/Z); ``radial``, 0 unless
+  given or adjusted): m ≤ 5 global parameters, a border on the reduced camera system (the camera
+  solve gets m more right-hand sides and an m×m Schur complement gives the intrinsics' step).
 * ``bal`` — Bundle Adjustment in the Large: P = R X + t, p = -P_xy / P_z,
   x = f (1 + k1 |p|² + k2 |p|⁴) p; 9 parameters per camera (ω, t, f, k1, k2).
 
@@ -42,8 +43,9 @@ from torchsfm.numerics import floor_tiny
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
 DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
 BLOCK_CHUNK_NUMBERS = 2**22  # its block path forms the camera-pair blocks of this many numbers at a time (32 MiB)
-INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0),
-                        "cx": (0.0, 0.0, 1.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy)
+INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0, 0.0),
+                        "cx": (0.0, 0.0, 1.0, 0.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0, 0.0),
+                        "k1": (0.0, 0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy, k1)
 
 
 @dataclass
@@ -62,6 +64,8 @@ class BundleProblem:
         shared_intrinsics: ``pinhole`` only: every camera has the same K (zero skew), and these
             of its parameters are adjusted with the cameras and points (names of
             ``INTRINSIC_PARAMETERS``; ``f`` keeps fx / fy as they are).
+        radial: ``pinhole`` only: the radial coefficient k1 every camera shares (normalized
+            coordinates; 0: none); adjusted where ``shared_intrinsics`` names ``k1``.
     """
 
     camera_model: str
@@ -74,6 +78,7 @@ class BundleProblem:
     observations: Tensor
     fixed_cameras: Tensor | None = None
     shared_intrinsics: tuple[str, ...] = ()
+    radial: float = 0.0
 
     def __post_init__(self) -> None:
         if self.camera_model not in CAMERA_DOF:
@@ -98,6 +103,8 @@ class BundleProblem:
         if names and (self.camera_model != "pinhole" or not bool((self.intrinsics == self.intrinsics[:1]).all())
                       or float(self.intrinsics[0, 0, 1]) != 0):
             raise InputError("shared_intrinsics needs the pinhole model and one K without skew for every camera")
+        if self.radial and self.camera_model != "pinhole":
+            raise InputError("radial is the pinhole model's (BAL cameras carry their own k1, k2)")
 
     @property
     def num_cameras(self) -> int:
@@ -120,11 +127,11 @@ class BundleProblem:
         observed = keep[self.point_index]
         return BundleProblem(self.camera_model, self.rotations, self.translations, self.intrinsics, self.points[keep],
                              self.camera_index[observed], new_index[self.point_index[observed]],
-                             self.observations[observed], self.fixed_cameras, self.shared_intrinsics)
+                             self.observations[observed], self.fixed_cameras, self.shared_intrinsics, self.radial)
 
     def residuals(self) -> Tensor:
         """Predicted minus observed coordinates: (O, 2)."""
-        return _project(self, self.rotations, self.translations, self.intrinsics, self.points)[0] - self.observations
+        return _project(self, self.rotations, self.translations, self.intrinsics, self.points, radial=self.radial)[0] - self.observations
 
     def cost(self) -> float:
         """½ Σ ‖r‖² (pixels²)."""
@@ -146,9 +153,11 @@ class BundleResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _project(problem: BundleProblem, R: Tensor, t: Tensor, intrinsics: Tensor, points: Tensor, jacobians: bool = False):
+def _project(problem: BundleProblem, R: Tensor, t: Tensor, intrinsics: Tensor, points: Tensor, jacobians: bool = False,
+             radial: Tensor | float = 0.0):
     """Predictions (O, 2) and, on request, d prediction / d(camera tangent) (O, 2, dc) and
-    d prediction / d point (O, 2, 3)."""
+    d prediction / d point (O, 2, 3); ``radial``: the pinhole cameras' shared k1 (a 0-d tensor
+    while it is adjusted)."""
     c, p = problem.camera_index, problem.point_index
     rotated = (R[c] @ points[p][..., None]).squeeze(-1)  # R X: (O, 3)
     camera_point = rotated + t[c]
@@ -156,12 +165,22 @@ def _project(problem: BundleProblem, R: Tensor, t: Tensor, intrinsics: Tensor, p
     if problem.camera_model == "pinhole":
         K = intrinsics[c]
         normalized = camera_point[:, :2] / z[:, None]
-        prediction = (K[:, :2, :2] @ normalized[..., None]).squeeze(-1) + K[:, :2, 2]
+        distorted = isinstance(radial, Tensor) or radial != 0
+        if distorted:
+            r2 = normalized.square().sum(-1, keepdim=True)
+            seen = normalized * (1 + radial * r2)
+        else:
+            seen = normalized
+        prediction = (K[:, :2, :2] @ seen[..., None]).squeeze(-1) + K[:, :2, 2]
         if not jacobians:
             return prediction, None, None
         d_normalized = torch.zeros(x.shape[0], 2, 3, dtype=x.dtype, device=x.device)
         d_normalized[:, 0, 0], d_normalized[:, 1, 1] = 1 / z, 1 / z
         d_normalized[:, 0, 2], d_normalized[:, 1, 2] = -x / z**2, -y / z**2
+        if distorted:  # d seen / d normalized = (1 + k1 r²) I + 2 k1 n nᵀ
+            eye = torch.eye(2, dtype=x.dtype, device=x.device)
+            d_seen = (1 + radial * r2)[..., None] * eye + 2 * radial * normalized[:, :, None] * normalized[:, None, :]
+            d_normalized = d_seen @ d_normalized
         d_camera_point = K[:, :2, :2] @ d_normalized  # (O, 2, 3)
         d_camera = torch.cat([d_camera_point @ -skew(rotated), d_camera_point], dim=-1)  # δω (left), δt
         return prediction, d_camera, d_camera_point @ R[c]
@@ -411,8 +430,8 @@ class _BundleLM:
     """A :class:`~torchsfm.optim.lm.LMProblem` view of a bundle problem (batch of one).
 
     Parameters are flattened to (1, S): per camera R (9), t (3) and for BAL (f, k1, k2), then
-    the points, then with ``shared_intrinsics`` (fx, fy, cx, cy). Steps are (1, C dc + 3 P [+ m]),
-    the intrinsics' m along ``intrinsics_basis`` (4, m).
+    the points, then with ``shared_intrinsics`` (fx, fy, cx, cy, k1). Steps are (1, C dc + 3 P [+ m]),
+    the intrinsics' m along ``intrinsics_basis`` (5, m).
     """
 
     def __init__(self, bundle: BundleProblem, config: BundleAdjustmentConfig) -> None:
@@ -426,7 +445,7 @@ class _BundleLM:
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
         self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
         self.intrinsics_basis = torch.tensor([INTRINSIC_PARAMETERS[name] for name in bundle.shared_intrinsics],
-                                             dtype=bundle.points.dtype, device=bundle.points.device).reshape(-1, 4).T
+                                             dtype=bundle.points.dtype, device=bundle.points.device).reshape(-1, 5).T
 
     def block_indices(self) -> list[Tensor]:
         """Per track-length group, the (P_n n n,) index of the reduced-camera-system block each
@@ -451,33 +470,42 @@ class _BundleLM:
         parts = [bundle.rotations.flatten(1), bundle.translations]
         if bundle.camera_model == "bal":
             parts.append(bundle.intrinsics)
-        shared = [bundle.intrinsics[0, [0, 1, 0, 1], [0, 1, 2, 2]]] if bundle.shared_intrinsics else []
+        shared = [bundle.intrinsics[0, [0, 1, 0, 1], [0, 1, 2, 2]], bundle.points.new_tensor([bundle.radial])] if bundle.shared_intrinsics else []
         return torch.cat([torch.cat(parts, dim=1).flatten(), bundle.points.flatten()] + shared)[None]
 
-    def unpack(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def unpack(self, params: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | float]:
+        """Rotations, translations, intrinsics, points and the pinhole cameras' radial k1 (a 0-d
+        tensor with ``shared_intrinsics``)."""
         C, P = self.bundle.num_cameras, self.bundle.num_points
         cameras = params[0, : C * self.state_size].reshape(C, self.state_size)
         points = params[0, C * self.state_size:C * self.state_size + 3 * P].reshape(-1, 3)
         intrinsics = cameras[:, 12:15] if self.bundle.camera_model == "bal" else self.bundle.intrinsics
-        if self.bundle.shared_intrinsics:  # (fx, fy, cx, cy) after the points
-            fx, fy, cx, cy = params[0, -4:].unbind()
+        radial: Tensor | float = self.bundle.radial
+        if self.bundle.shared_intrinsics:  # (fx, fy, cx, cy, k1) after the points
+            fx, fy, cx, cy, k1 = params[0, -5:].unbind()
             zero, one = torch.zeros_like(fx), torch.ones_like(fx)
             K = torch.stack([fx, zero, cx, zero, fy, cy, zero, zero, one]).reshape(3, 3)
             intrinsics = K.expand(C, 3, 3)
-        return cameras[:, :9].reshape(C, 3, 3), cameras[:, 9:12], intrinsics, points
+            radial = k1 if "k1" in self.bundle.shared_intrinsics else self.bundle.radial
+        return cameras[:, :9].reshape(C, 3, 3), cameras[:, 9:12], intrinsics, points, radial
 
     def _weighted(self, params: Tensor, jacobians: bool):
-        R, t, intrinsics, points = self.unpack(params)
-        prediction, d_camera, d_point = _project(self.bundle, R, t, intrinsics, points, jacobians)
+        R, t, intrinsics, points, radial = self.unpack(params)
+        prediction, d_camera, d_point = _project(self.bundle, R, t, intrinsics, points, jacobians, radial)
         residuals = prediction - self.bundle.observations
         rho, weights = _loss(residuals.square().sum(-1), self.config.loss, self.config.loss_scale)
         d_intrinsics = None
-        if jacobians and self.bundle.shared_intrinsics:  # d(u, v) / d(fx, fy, cx, cy) = [[xn, 0, 1, 0], [0, yn, 0, 1]]
+        if jacobians and self.bundle.shared_intrinsics:
+            # d(u, v) / d(fx, fy, cx, cy, k1) = [[sx, 0, 1, 0, fx nx r²], [0, sy, 0, 1, fy ny r²]], s = n (1 + k1 r²)
             K = intrinsics[0]
-            normalized = (prediction - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]])
-            d_intrinsics = torch.zeros(prediction.shape[0], 2, 4, dtype=prediction.dtype, device=prediction.device)
-            d_intrinsics[:, 0, 0], d_intrinsics[:, 1, 1] = normalized[:, 0], normalized[:, 1]
+            seen = (prediction - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]])
+            d_intrinsics = torch.zeros(prediction.shape[0], 2, 5, dtype=prediction.dtype, device=prediction.device)
+            d_intrinsics[:, 0, 0], d_intrinsics[:, 1, 1] = seen[:, 0], seen[:, 1]
             d_intrinsics[:, 0, 2] = d_intrinsics[:, 1, 3] = 1
+            if "k1" in self.bundle.shared_intrinsics:
+                camera_point = (R[self.bundle.camera_index] @ points[self.bundle.point_index][..., None])[..., 0] + t[self.bundle.camera_index]
+                normalized = camera_point[:, :2] / camera_point[:, 2:]
+                d_intrinsics[:, :, 4] = torch.stack([K[0, 0], K[1, 1]]) * normalized * normalized.square().sum(-1, keepdim=True)
             d_intrinsics = d_intrinsics @ self.intrinsics_basis  # (O, 2, m)
         return residuals, rho, weights, d_camera, d_point, d_intrinsics
 
@@ -491,14 +519,14 @@ class _BundleLM:
 
     def retract(self, params: Tensor, delta: Tensor) -> Tensor:
         C, P, dc = self.bundle.num_cameras, self.bundle.num_points, self.dc
-        R, t, intrinsics, points = self.unpack(params)
+        R, t, intrinsics, points, _ = self.unpack(params)
         step_camera = delta[0, : C * dc].reshape(C, dc) * self.free
         R = axis_angle_to_rotation(step_camera[:, :3]) @ R
         t = t + step_camera[:, 3:6]
         parts = [R.flatten(1), t] + ([intrinsics + step_camera[:, 6:9]] if self.bundle.camera_model == "bal" else [])
         points = points + delta[0, C * dc:C * dc + 3 * P].reshape(-1, 3)
         m = self.intrinsics_basis.shape[1]
-        shared = [params[0, -4:] + self.intrinsics_basis @ delta[0, -m:]] if self.bundle.shared_intrinsics else []
+        shared = [params[0, -5:] + self.intrinsics_basis @ delta[0, -m:]] if self.bundle.shared_intrinsics else []
         return torch.cat([torch.cat(parts, dim=1).flatten(), points.flatten()] + shared)[None]
 
 
@@ -532,10 +560,11 @@ def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | No
     start = time.perf_counter()
     lm_problem = _BundleLM(problem, config)
     result = minimize(lm_problem, lm_problem.pack(problem), config.lm)
-    R, t, intrinsics, points = lm_problem.unpack(result.params)
+    R, t, intrinsics, points, radial = lm_problem.unpack(result.params)
     adjusted = copy.copy(problem)
     adjusted.rotations, adjusted.translations, adjusted.points = R.clone(), t.clone(), points.clone()
     adjusted.intrinsics = intrinsics.clone()  # a shared K: one copy per camera
+    adjusted.radial = float(radial)
     return BundleResult(problem=adjusted, initial_cost=problem.cost(), final_cost=adjusted.cost(),
                         num_iterations=int(result.num_iterations[0]), converged=bool(result.converged[0]),
                         status=("converged" if bool(result.converged[0]) else "stalled" if bool(result.stalled[0])

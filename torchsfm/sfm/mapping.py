@@ -10,7 +10,7 @@ import time
 import torch
 from torch import Tensor
 
-from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, rescale_pixels, to_homogeneous
+from torchsfm.camera import Camera, pixels_to_normalized, projection_matrix, rescale_pixels, to_homogeneous, undistort_points
 from torchsfm.config import BundleAdjustmentConfig, Config
 from torchsfm.errors import DegenerateConfigurationError, TorchSfmError
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, select_pose
@@ -61,6 +61,8 @@ class MapperState:
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
         self.pixels = tracks.gather(corners)  # (T, 2) undistorted
         self.raw_pixels = tracks.gather(raw)  # as detected (for colours)
+        self.observed = self.pixels  # the pixels before an estimated radial distortion is undone (K unknown)
+        self.radial = 0.0  # that distortion's k1: undone in ``pixels``
 
     def centres(self) -> Tensor:
         """(V, 3) camera centres (meaningful for registered views)."""
@@ -267,7 +269,9 @@ def rms_disparity(tracks: Tracks, pixels: Tensor, num_views: int, counts: Tensor
 def bundle_problem(model: MapperState, views: Tensor, tracks: Tensor, usable: Tensor, fixed: Tensor,
                    intrinsics: tuple[str, ...] = ()) -> BundleProblem:
     """The bundle problem of the model's ``views`` (C,) and ``tracks`` (P,) with their ``usable``
-    (T,) observations; ``fixed`` (V,) views hold still, the named shared ``intrinsics`` move."""
+    (T,) observations; ``fixed`` (V,) views hold still, the named shared ``intrinsics`` move
+    (with ``k1``: the observations as detected, the distortion in the cameras)."""
+    radial = "k1" in intrinsics
     camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
     camera_of[views] = torch.arange(views.numel())
     point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
@@ -275,8 +279,8 @@ def bundle_problem(model: MapperState, views: Tensor, tracks: Tensor, usable: Te
     return BundleProblem(
         camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
         points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
-        point_index=point_of[model.tracks.track[usable]], observations=model.pixels[usable],
-        fixed_cameras=fixed[views], shared_intrinsics=intrinsics,
+        point_index=point_of[model.tracks.track[usable]], observations=(model.observed if radial else model.pixels)[usable],
+        fixed_cameras=fixed[views], shared_intrinsics=intrinsics, radial=model.radial if radial else 0.0,
     )
 
 
@@ -311,6 +315,9 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
     if intrinsics:
         model.K = adjusted.intrinsics[:1].expand_as(model.K).clone()
+    if "k1" in intrinsics:  # undone in the pixels every other step uses
+        model.radial = adjusted.radial
+        model.pixels = undistort_points(model.observed, model.K[0], model.K.new_tensor([model.radial, 0.0]))
     return result.final_cost / max(int(usable.sum()), 1)
 
 
@@ -459,7 +466,7 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     critical motion leaves it free, e.g. two views whose optical axes meet) is not trusted: the
     model is restored and adjusted with K as it was. Returns what was done, for the progress
     report."""
-    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone(), model.has_point.clone())
+    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone(), model.has_point.clone(), model.pixels, model.radial)
     size = 2 * float(model.K[0, :2, 2].max()) + 1
     names = tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name)
     rounds, deviation = adjust_intrinsics(model, config, fixed_view, names)
@@ -467,21 +474,28 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     if deviation is not None and len(free_centre) < len(names):
         centre_deviation = max(float(deviation[names.index(name)]) for name in ("cx", "cy") if name in names)
         if centre_deviation > PRINCIPAL_POINT_PRECISION * size:  # from the start again: the points fit the centre there
-            model.K, model.R, model.t, model.points, model.has_point = (value.clone() for value in start)
+            model.K, model.R, model.t, model.points, model.has_point, model.pixels, model.radial = restored(start)
             rounds, deviation = adjust_intrinsics(model, config, fixed_view, free_centre)
             names = free_centre
             centre_note = f", principal point at the image centre (the data pin it to ±{centre_deviation:.0f} px only)"
     K = model.K[0]
-    value = {name: float(K[INTRINSIC_ENTRIES[name]]) for name in names}
+    value = {name: model.radial if name == "k1" else float(K[INTRINSIC_ENTRIES[name]]) for name in names}
     spread = {name: float("inf") if deviation is None else float(deviation[k]) for k, name in enumerate(names)}
     focal_spread = max((spread[name] / value[name] for name in names if name in ("f", "fx", "fy")), default=0.0)
     if deviation is None or focal_spread > FOCAL_PRECISION:
-        model.K, model.R, model.t, model.points, model.has_point = start
+        model.K, model.R, model.t, model.points, model.has_point, model.pixels, model.radial = start
         bundle(model, config, fixed_view)
         return (f"intrinsics refinement not trusted (the data pin the focal length to ±{100 * focal_spread:.0f} % only): "
                 f"focal length kept at {float(start[0][0, 0, 0]):.1f} px")
-    described = ", ".join(f"{name} {value[name]:.1f} ± {spread[name]:.1f}" for name in names)
-    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described} px{centre_note}"
+    described = ", ".join(f"{name} {value[name]:.4f} ± {spread[name]:.4f}" if name == "k1" else
+                          f"{name} {value[name]:.1f} ± {spread[name]:.1f} px" for name in names)
+    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described}{centre_note}"
+
+
+def restored(start: tuple) -> tuple:
+    """Copies of :func:`refine_intrinsics`' saved state (K, R, t, points, has_point; the pixels
+    and radial k1 as they were, never changed in place)."""
+    return (*(value.clone() for value in start[:5]), *start[5:])
 
 
 def adjust_intrinsics(model: MapperState, config: Config, fixed_view: int, names: tuple[str, ...]) -> tuple[int, Tensor | None]:
@@ -724,14 +738,15 @@ def build_reconstruction(model: MapperState, colours: list[Tensor] | None, sizes
         colour = source.expand(3, -1, -1)[:, pixel[:, 1], pixel[:, 0]].T
         point_colours[mine] = colour if colour.dtype == torch.uint8 else (colour.float() * 255).round().clamp(0, 255).to(torch.uint8)
     return Reconstruction(
-        cameras=Camera(model.K[views], model.R[views], model.t[views]),
+        cameras=Camera(model.K[views], model.R[views], model.t[views],  # an estimated k1 with the pixels as detected
+                       model.K.new_tensor([model.radial, 0.0]).expand(views.numel(), 2) if model.radial else None),
         image_names=[names[v] for v in views.tolist()],
         image_sizes=torch.tensor([[sizes[v][1], sizes[v][0]] for v in views.tolist()]),
         points3d=model.points[point_tracks],
         colors=point_colours,
         observation_points=point_of[tracks.track[keep]],
         observation_views=camera_of[tracks.view[keep]],
-        keypoints=model.pixels[keep],
+        keypoints=(model.observed if model.radial else model.pixels)[keep],
         view_indices=views.tolist(),
         point_tracks=point_tracks,
         unregistered=unregistered,

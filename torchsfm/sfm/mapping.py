@@ -452,9 +452,11 @@ def pair_disagreement(model: MapperState, pairs: dict[tuple[int, int], PairMatch
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
-    """The K shared by every view — ``reconstruction.refined_intrinsics`` of fx, fy, cx, cy —
-    adjusted jointly with the cameras and points (:class:`~torchsfm.optim.bundle.BundleProblem`
-    ``shared_intrinsics``), in place, and kept only where the data determine it.
+    """The K shared by every view — ``reconstruction.refined_intrinsics`` of fx, fy, cx, cy and
+    the radial k1 — adjusted jointly with the cameras and points
+    (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``; an estimated k1 is
+    undone in the model's pixels after each adjustment, :func:`bundle`), in place, and kept only
+    where the data determine it.
 
     The adjustment repeats, each round followed by triangulation of the tracks the new K reaches,
     while the focal length moves (``INTRINSICS_ROUNDS`` at most; one adjustment from a prior twice

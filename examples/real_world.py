@@ -39,7 +39,7 @@ import torch.nn.functional as functional
 from kornia.geometry.transform import warp_perspective
 
 import torchsfm
-from torchsfm.camera import decompose_projection, undistort_points
+from torchsfm.camera import decompose_projection, distort_image
 from torchsfm.config import with_overrides
 from torchsfm.errors import TorchSfmError
 from torchsfm.evaluation import camera_errors
@@ -97,7 +97,8 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
             K = torch.tensor([[K[1, 1], 0.0, height - 1 - K[1, 2]], [0.0, K[0, 0], K[0, 2]], [0.0, 0.0, 1.0]], dtype=torch.float64)
             R, t = turn @ R, turn @ t
         if distorted:
-            image = radially_distorted(image, K, distorted)
+            lens = torch.tensor([distorted, 0.0], dtype=torch.float64)
+            image = distort_image(image[None].float(), K, lens)[0].round().clamp(0, 255).byte()
         if stamped:
             image = image.clone()
             image[..., stamp_region(image.shape[-2])[0], stamp_region(image.shape[-2])[1]] = STAMP
@@ -111,17 +112,6 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
         mask[stamp_region(image.shape[-2])] = 0
         write_png(folder / "overlay_mask.png", mask.expand(3, -1, -1))
     return StrechaSequence(images=paths, K=torch.stack(Ks), R=torch.stack(Rs), t=torch.stack(ts))
-
-
-def radially_distorted(image: torch.Tensor, K: torch.Tensor, k1: float) -> torch.Tensor:
-    """A (C, H, W) uint8 image as a lens with radial coefficient k1 would record it: each output
-    pixel samples the ideal image where :func:`~torchsfm.camera.undistort_points` puts it."""
-    height, width = image.shape[-2:]
-    ys, xs = torch.meshgrid(torch.arange(height, dtype=torch.float64), torch.arange(width, dtype=torch.float64), indexing="ij")
-    ideal = undistort_points(torch.stack([xs.flatten(), ys.flatten()], -1), K, torch.tensor([k1, 0.0], dtype=torch.float64))
-    grid = torch.stack([2 * ideal[:, 0] / (width - 1) - 1, 2 * ideal[:, 1] / (height - 1) - 1], -1).reshape(1, height, width, 2)
-    sampled = functional.grid_sample(image[None].float(), grid.float(), mode="bilinear", padding_mode="zeros", align_corners=True)
-    return sampled[0].round().clamp(0, 255).byte()
 
 
 STAMP = ((torch.rand(5, 24, generator=torch.Generator().manual_seed(3)) > 0.5).repeat_interleave(8, 0)

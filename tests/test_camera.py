@@ -7,6 +7,7 @@ from torchsfm.camera import (
     camera_center,
     check_intrinsics,
     decompose_projection,
+    distort_image,
     distort_points,
     normalized_to_pixels,
     pixels_to_normalized,
@@ -98,6 +99,21 @@ def test_undistort_image_moves_a_dot_to_its_ideal_position():
     weights = corrected[0, 0].double()
     centroid = torch.stack([(weights * xs).sum(), (weights * ys).sum()]) / weights.sum()
     assert_close(centroid, ideal[0], rtol=0, atol=0.05)
+
+
+def test_distort_image_moves_a_dot_to_where_the_lens_sees_it():
+    """The inverse of the test above: a dot at its ideal position, resampled through the lens,
+    lands where distort_points puts it (centroid within 0.05 px)."""
+    K = torch.tensor([[200.0, 0, 63.5], [0, 200.0, 47.5], [0, 0, 1]], **DOUBLE)
+    coefficients = torch.tensor([-0.3, 0.0], **DOUBLE)
+    ideal = torch.tensor([[100.0, 80.0]], **DOUBLE)
+    observed = distort_points(ideal, K, coefficients)[0]
+    ys, xs = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+    image = torch.exp(-((xs - ideal[0, 0]) ** 2 + (ys - ideal[0, 1]) ** 2) / 4.0)[None, None].float()
+    weights = distort_image(image, K, coefficients)[0, 0].double()
+    centroid = torch.stack([(weights * xs).sum(), (weights * ys).sum()]) / weights.sum()
+    assert_close(centroid, observed, rtol=0, atol=0.05)
+    assert float((observed - ideal[0]).norm()) > 0.5  # ten times the tolerance: an unmoved dot would fail
 
 
 def test_singular_intrinsics_are_rejected():

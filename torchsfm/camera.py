@@ -167,6 +167,22 @@ def undistort_image(image: Tensor, K: Tensor, distortion: Tensor) -> Tensor:
     Each output (ideal) pixel is distorted forward and the input is sampled there bilinearly, so
     no inverse of the model is needed. K is (B, 3, 3) or (3, 3); distortion (B, 2) or (2,).
     """
+    return _sampled_through(image, K, distortion, distort_points)
+
+
+def distort_image(image: Tensor, K: Tensor, distortion: Tensor) -> Tensor:
+    """Resample an ideal image as the same camera with distortion would record it (the inverse
+    of :func:`undistort_image`; e.g. a synthetic lens): (B, C, H, W) float -> (B, C, H, W).
+
+    Each output (observed) pixel is undistorted (:func:`undistort_points`) and the input is
+    sampled there bilinearly. K is (B, 3, 3) or (3, 3); distortion (B, 2) or (2,).
+    """
+    return _sampled_through(image, K, distortion, undistort_points)
+
+
+def _sampled_through(image: Tensor, K: Tensor, distortion: Tensor, where) -> Tensor:
+    """(B, C, H, W) image sampled bilinearly, at each output pixel, where ``where`` (pixels, K,
+    distortion) -> pixels puts it."""
     B, _, H, W = image.shape
     ys, xs = torch.meshgrid(
         torch.arange(H, dtype=K.dtype, device=image.device),
@@ -174,7 +190,7 @@ def undistort_image(image: Tensor, K: Tensor, distortion: Tensor) -> Tensor:
         indexing="ij",
     )
     grid = torch.stack([xs, ys], dim=-1).reshape(1, H * W, 2).expand(B, -1, -1)
-    source = distort_points(grid, K.expand(B, 3, 3), distortion.expand(B, 2)).to(image.dtype)
+    source = where(grid, K.expand(B, 3, 3), distortion.expand(B, 2)).to(image.dtype)
     source = source.reshape(B, H, W, 2)
     return remap(image, source[..., 0], source[..., 1], align_corners=True)
 

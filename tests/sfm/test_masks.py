@@ -22,11 +22,16 @@ K = torch.tensor([[689.87, 0.0, 380.0], [0.0, 691.04, 251.0], [0.0, 0.0, 1.0]], 
 STAMP = (slice(440, 488), slice(40, 232))  # rows, columns of the overlay in the 768x512 views
 
 
+def _block_pattern(rows: int, columns: int, seed: int) -> torch.Tensor:
+    """(8 rows, 8 columns) uint8: seeded black and white blocks of 8 px (an overlay's text)."""
+    blocks = torch.rand(rows, columns, generator=torch.Generator().manual_seed(seed)) > 0.5
+    return (blocks.repeat_interleave(8, 0).repeat_interleave(8, 1) * 255).to(torch.uint8)
+
+
 def _stamped_views() -> tuple[list[torch.Tensor], torch.Tensor]:
     """Fountain-P11 views 4-6 (bundled) with one high-contrast block pattern at the same pixels of
     every view (a time stamp burnt into a video), and the mask that leaves it out."""
-    blocks = torch.rand(6, 24, generator=torch.Generator().manual_seed(0)) > 0.5
-    pattern = (blocks.repeat_interleave(8, 0).repeat_interleave(8, 1) * 255).to(torch.uint8)
+    pattern = _block_pattern(6, 24, seed=0)
     views = []
     for v in (4, 5, 6):
         image = read_image(SAMPLE / f"000{v}.jpg").clone()
@@ -146,8 +151,7 @@ def test_an_overlay_in_a_driving_video_is_no_part_of_the_model_without_a_mask(sh
     from torchsfm.io.datasets import read_kitti_odometry
 
     kitti = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
-    blocks = torch.rand(5, 24, generator=torch.Generator().manual_seed(3)) > 0.5
-    pattern = (blocks.repeat_interleave(8, 0).repeat_interleave(8, 1) * 255).to(torch.uint8)
+    pattern = _block_pattern(5, 24, seed=3)
     frames = []
     for path in kitti.images:
         image = read_image(path).clone()

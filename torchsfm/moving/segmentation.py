@@ -58,6 +58,13 @@ minimal-sample models:
    (:func:`partition_residual`). With more, the cut anew. The number says how many motions there
    are, the scene's geometry which tracks belong to it.
 
+7. **An ensemble** (``config.runs`` > 1; 1 by default): steps 1-6 run that many times on
+   successive draws of the generator, and the result is the run whose partition agrees most with
+   the others' (the sum of adjusted Rand indices, :func:`~torchsfm.evaluation.adjusted_rand_index`:
+   the ensemble's medoid; ties to the earliest run). Each run's random hypotheses and k-means
+   starts can take a wrong turn — the scene cut in two, a body merged into it — and a turn most
+   runs do not take is outvoted (measured in :class:`~torchsfm.config.SegmentationConfig`).
+
 Tracks seen in fewer than ``min_frames`` frames are labelled -1 (too short to judge). Two-frame
 input (matches with several motions) is accepted: the F hypotheses then use the one pair.
 """
@@ -74,6 +81,7 @@ from torch import Tensor
 from torchsfm.camera import FOCAL_PRIOR, pixels_to_normalized, to_homogeneous
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
+from torchsfm.evaluation import adjusted_rand_index
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, parallax_from_infinity, select_pose
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
 from torchsfm.geometry.homography import homography_dlt, transfer_error
@@ -153,6 +161,22 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     config = config or SegmentationConfig()
     tracks, visible = check_tracks(tracks, visible, min_frames=2)
     generator = resolve_generator(generator, tracks.device)
+    if config.runs == 1:
+        return _segment_once(tracks, visible, config, num_motions, generator)
+    runs = []
+    for _ in range(config.runs):
+        run = _segment_once(tracks, visible, config, num_motions, generator)
+        run.affinity = run.affinity.to_sparse()  # (n, n) with 2 ``links`` entries a row at most: held compactly meanwhile
+        runs.append(run)
+    agreement = [sum(adjusted_rand_index(run.labels, other.labels) for other in runs if other is not run) for run in runs]
+    medoid = runs[max(range(len(runs)), key=lambda r: (agreement[r], -r))]  # the earliest on ties
+    medoid.affinity = medoid.affinity.to_dense()
+    return medoid
+
+
+def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, num_motions: int | None,
+                  generator: torch.Generator) -> MotionSegmentation:
+    """One run of :func:`segment_motions` (steps 1-6 of the module docstring) on checked input."""
     judged = visible.sum(0) >= min(config.min_frames, tracks.shape[0])
     if int(judged.sum()) < MIN_VECTORS:
         raise NotEnoughDataError(f"only {int(judged.sum())} tracks are seen in {config.min_frames} frames (needs {MIN_VECTORS})")

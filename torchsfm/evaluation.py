@@ -85,26 +85,6 @@ def misclassification(labels: Tensor, truth: Tensor) -> float:
     return 1.0 - agree / max(truth.numel(), 1)
 
 
-def adjusted_rand_index(first: Tensor, second: Tensor) -> float:
-    """Agreement of two partitions of the same N points, (N,) integer labels each (-1 a class of
-    its own): the Rand index corrected for chance (Hubert & Arabie 1985), 1 for the same
-    partition whatever the label values, about 0 for unrelated ones; 1 when both put every point
-    in one class."""
-    _, a = torch.unique(first, return_inverse=True)
-    _, b = torch.unique(second, return_inverse=True)
-    table = torch.zeros(int(a.max()) + 1, int(b.max()) + 1, dtype=torch.float64, device=a.device)
-    table.index_put_((a, b), torch.ones_like(a, dtype=torch.float64), accumulate=True)
-
-    def pairs(counts: Tensor) -> Tensor:
-        return (counts * (counts - 1) / 2).sum()
-
-    together, rows, columns = pairs(table), pairs(table.sum(1)), pairs(table.sum(0))
-    n = first.numel()
-    expected = rows * columns / max(n * (n - 1) / 2, 1)
-    largest = (rows + columns) / 2
-    return 1.0 if float(largest - expected) == 0 else float((together - expected) / (largest - expected))
-
-
 def _best_assignment(overlap: Tensor) -> int:
     """Largest total of a (A, B) table over one-to-one row-column matchings (exhaustive over the
     smaller side's choices: motion counts are small)."""

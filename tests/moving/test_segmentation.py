@@ -720,7 +720,7 @@ def test_kmeans_stops_at_its_fixed_point_with_the_labels_of_every_iteration(monk
 
 
 def test_adjusted_rand_index_is_one_for_the_same_partition_and_near_zero_for_unrelated_ones():
-    from torchsfm.evaluation import adjusted_rand_index
+    from torchsfm.moving.segmentation import adjusted_rand_index
 
     labels = torch.tensor([0, 0, 0, 1, 1, 2, -1])
     assert adjusted_rand_index(labels, torch.tensor([7, 7, 7, 3, 3, 5, 9])) == pytest.approx(1.0, abs=1e-12)
@@ -738,7 +738,7 @@ def test_the_runs_are_outvoted_by_the_partition_most_of_them_agree_with():
     """``runs`` = 3 returns the medoid of the three runs one generator draws in turn (each as a
     call with the default ``runs`` = 1 on it): KT3DMoSeg Seq059_Clip01 at seed 2, whose first run leaves 11.4 % of
     the tracks misclassified and the other two 0.4 and 0.6 % (measured): the first is outvoted."""
-    from torchsfm.evaluation import adjusted_rand_index
+    from torchsfm.moving.segmentation import adjusted_rand_index
     from torchsfm.io.datasets import read_kt3dmoseg
 
     sequence = read_kt3dmoseg(DATA / "kt3dmoseg_dev" / "Seq059_Clip01_Tracks")

@@ -60,7 +60,7 @@ minimal-sample models:
 
 7. **An ensemble** (``config.runs`` > 1; 1 by default): steps 1-6 run that many times on
    successive draws of the generator, and the result is the run whose partition agrees most with
-   the others' (the sum of adjusted Rand indices, :func:`~torchsfm.evaluation.adjusted_rand_index`:
+   the others' (the sum of adjusted Rand indices, :func:`adjusted_rand_index`:
    the ensemble's medoid; ties to the earliest run). Each run's random hypotheses and k-means
    starts can take a wrong turn — the scene cut in two, a body merged into it — and a turn most
    runs do not take is outvoted (measured in :class:`~torchsfm.config.SegmentationConfig`).
@@ -81,7 +81,6 @@ from torch import Tensor
 from torchsfm.camera import FOCAL_PRIOR, pixels_to_normalized, to_homogeneous
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
-from torchsfm.evaluation import adjusted_rand_index
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, parallax_from_infinity, select_pose
 from torchsfm.geometry.fundamental import eight_point, eight_point_minimal, sampson_error
 from torchsfm.geometry.homography import homography_dlt, transfer_error
@@ -172,6 +171,26 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
     medoid = runs[max(range(len(runs)), key=lambda r: (agreement[r], -r))]  # the earliest on ties
     medoid.affinity = medoid.affinity.to_dense()
     return medoid
+
+
+def adjusted_rand_index(first: Tensor, second: Tensor) -> float:
+    """Agreement of two partitions of the same N points, (N,) integer labels each (-1 a class of
+    its own): the Rand index corrected for chance (Hubert & Arabie 1985), 1 for the same
+    partition whatever the label values, about 0 for unrelated ones; 1 when both put every point
+    in one class."""
+    _, a = torch.unique(first, return_inverse=True)
+    _, b = torch.unique(second, return_inverse=True)
+    table = torch.zeros(int(a.max()) + 1, int(b.max()) + 1, dtype=torch.float64, device=a.device)
+    table.index_put_((a, b), torch.ones_like(a, dtype=torch.float64), accumulate=True)
+
+    def pairs(counts: Tensor) -> Tensor:
+        return (counts * (counts - 1) / 2).sum()
+
+    together, rows, columns = pairs(table), pairs(table.sum(1)), pairs(table.sum(0))
+    n = first.numel()
+    expected = rows * columns / max(n * (n - 1) / 2, 1)
+    largest = (rows + columns) / 2
+    return 1.0 if float(largest - expected) == 0 else float((together - expected) / (largest - expected))
 
 
 def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, num_motions: int | None,

@@ -725,7 +725,8 @@ def test_adjusted_rand_index_is_one_for_the_same_partition_and_near_zero_for_unr
     labels = torch.tensor([0, 0, 0, 1, 1, 2, -1])
     assert adjusted_rand_index(labels, torch.tensor([7, 7, 7, 3, 3, 5, 9])) == pytest.approx(1.0, abs=1e-12)
     assert adjusted_rand_index(torch.zeros(5, dtype=torch.long), torch.full((5,), 3)) == 1.0
-    # Hubert & Arabie's example value: the contingency table [[1, 1], [0, 2]] -> ARI = 0
+    # by hand: contingency table [[1, 1], [0, 2]]: 1 pair together in both, 2 and 3 in each alone,
+    # 2 x 3 / 6 = 1 expected by chance, so (1 - 1) / ((2 + 3) / 2 - 1) = 0
     assert adjusted_rand_index(torch.tensor([0, 0, 1, 1]), torch.tensor([0, 1, 1, 1])) == pytest.approx(0.0, abs=1e-12)
     generator = torch.Generator().manual_seed(0)
     unrelated = [adjusted_rand_index(torch.randint(0, 3, (3000,), generator=generator), torch.randint(0, 4, (3000,), generator=generator))

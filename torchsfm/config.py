@@ -630,8 +630,8 @@ class SegmentationConfig:
     Strehl & Ghosh 2002) is the result; ties go to the earliest run. Measured with 3 runs against
     1, over seeds 0-9 (``examples/motion_segmentation.py --set segmentation.runs=3``), mean
     misclassification with the number of motions given: Hopkins155 1.67 → 0.64 %, AdelaideRMF-F
-    13.59 → 12.61 %, KT3DMoSeg 6.04 → 7.25 %; found: Hopkins155 4.34 → 4.34 %, KT3DMoSeg 5.85 →
-    5.05 %, AdelaideRMF-F 12.57 → 12.19 % — for 3× the time; so 1 by default.
+    13.59 → 12.60 %, KT3DMoSeg 6.04 → 7.25 %; found: Hopkins155 4.34 → 4.34 %, KT3DMoSeg 5.85 →
+    5.04 %, AdelaideRMF-F 12.57 → 12.19 % — for 3× the time; so 1 by default.
     """
 
     hypotheses: int = 4000

@@ -444,7 +444,10 @@ class ReconstructionConfig:
     ``refined_intrinsics`` of the K all views share (comma-separated: ``f`` for one square-pixel
     focal length or ``fx``, ``fy``, and ``cx``, ``cy``, and ``k1``: one radial distortion
     coefficient, the model's cameras then carrying it and its keypoints as detected), each kept
-    only where the data determine it (:func:`torchsfm.sfm.mapping.refine_intrinsics`).
+    only where the data determine it; alternatives separated by ``|`` are each refined from the
+    same start and the one with the smallest geometric AIC kept (default: a free principal point,
+    or one radial coefficient with the principal point at the image centre;
+    :func:`torchsfm.sfm.mapping.refine_intrinsics`).
     """
 
     min_pair_inliers: int = 30
@@ -461,14 +464,15 @@ class ReconstructionConfig:
     local_bundle_window: int = 0
     retriangulations: int = 1
     bundle_loss: Loss = "cauchy"
-    refined_intrinsics: str = "f,cx,cy"
+    refined_intrinsics: str = "f,cx,cy|f,k1"
 
     def __post_init__(self) -> None:
         _require_choices(self)
-        names = [name for name in self.refined_intrinsics.split(",") if name]
-        _require(all(name in ("f", "fx", "fy", "cx", "cy", "k1") for name in names) and len(set(names)) == len(names)
-                 and not ("f" in names and {"fx", "fy"} & set(names)), "refined_intrinsics", self.refined_intrinsics,
-                 "distinct names of f (or fx, fy), cx, cy, k1, comma-separated")
+        for alternative in self.refined_intrinsics.split("|"):
+            names = [name for name in alternative.split(",") if name]
+            _require(all(name in ("f", "fx", "fy", "cx", "cy", "k1") for name in names) and len(set(names)) == len(names)
+                     and not ("f" in names and {"fx", "fy"} & set(names)), "refined_intrinsics", self.refined_intrinsics,
+                     "distinct names of f (or fx, fy), cx, cy, k1, comma-separated; alternatives separated by |")
         _require(self.retriangulations >= 0, "retriangulations", self.retriangulations, "must be >= 0")
         _require(self.min_pair_inliers >= 8, "min_pair_inliers", self.min_pair_inliers, "must be >= 8")
         _require(self.homography_threshold > 0, "homography_threshold", self.homography_threshold, "must be > 0")

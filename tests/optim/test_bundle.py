@@ -134,6 +134,15 @@ def test_robust_losses_resist_outlier_observations(loss):
         assert rms(robust) < 0.35 < rms(plain)
 
 
+def test_robust_cost_is_the_sum_of_the_loss_over_the_observations():
+    """Σ ρ(‖r‖²): twice the plain cost without a loss; Cauchy's c² log(1 + s / c²) by hand."""
+    _, problem = _ring("pinhole", noise=0.5, seed=3)
+    squared = problem.residuals().square().sum(-1)
+    assert_close(problem.robust_cost("none", 1.0), 2 * problem.cost(), rtol=1e-12, atol=0)
+    assert_close(problem.robust_cost("cauchy", 2.0), float((4 * torch.log1p(squared / 4)).sum()), rtol=1e-12, atol=0)
+    assert problem.robust_cost("huber", 1.0) <= problem.robust_cost("none", 1.0)
+
+
 def test_bal_round_trip(tmp_path):
     _, problem = _ring("bal", cameras=3, points=10)
     write_bal(tmp_path / "p.txt", problem)

@@ -471,8 +471,8 @@ def test_without_K_a_lens_radial_distortion_is_estimated_when_asked(shared_data)
     """Fountain-P11 resampled through radial distortion k1 = -0.02 and reconstructed without K
     and with ``refined_intrinsics`` f, cx, cy, k1: k1 within 0.002, the focal length within
     0.2 %, the model's cameras carrying k1 and its keypoints as detected (reprojection RMS below
-    0.4 px through that distortion); rotation error 0.23° (checked: 0.78° with the default f,
-    cx, cy, whose principal point moves 17 px to absorb the distortion)."""
+    0.4 px through that distortion); rotation error 0.23° (checked: 0.78° with f, cx, cy alone,
+    whose principal point moves 17 px to absorb the distortion)."""
     from torchsfm.camera import distort_image
     from torchsfm.images import read_image
 
@@ -489,3 +489,35 @@ def test_without_K_a_lens_radial_distortion_is_estimated_when_asked(shared_data)
     assert model.reprojection_rms() < 0.4
     errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R, sequence.t)
     assert float(errors.rotation.median()) < 0.3 and float(errors.centre.median()) < 0.001 * errors.extent
+
+
+@pytest.mark.parametrize("k1", [-0.02, 0.0])
+def test_without_K_the_observations_choose_between_lens_distortion_and_a_free_principal_point(shared_data, k1):
+    """Fountain-P11 without K, by default: through a lens with k1 = -0.02 the geometric AIC keeps
+    f, k1 (measured k1 -0.0226 with the principal point at the centre; rotation 0.199° where f,
+    cx, cy alone gives 0.78°, its principal point 17 px off to absorb the distortion); the
+    undistorted images keep f, cx, cy and no distortion (rotation 0.149°, with f, k1 0.193°)."""
+    from torchsfm.camera import distort_image
+    from torchsfm.images import read_image
+
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    lens = torch.tensor([k1, 0.0], dtype=torch.float64)
+    images = [distort_image(read_image(path)[None].float(), sequence.K[v], lens)[0].round().clamp(0, 255).to(torch.uint8)
+              for v, path in enumerate(sequence.images)]
+    messages = []
+    model = torchsfm.reconstruct(images, generator=torch.Generator().manual_seed(0), progress=messages.append)
+    assert model.num_views == 11
+    report = next(message for message in messages if message.startswith("intrinsics refined by bundle adjustment"))
+    assert "chosen by the geometric AIC" in report
+    centre = torch.tensor([383.5, 255.5], dtype=torch.float64)
+    errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R, sequence.t)
+    assert abs(float(model.cameras.K[0, 0, 0]) / float(sequence.K[0, 0, 0]) - 1) < 0.005
+    if k1:
+        assert "k1" in report.split(" — ")[0]
+        assert abs(float(model.cameras.distortion[0, 0]) - k1) < 0.004
+        torch.testing.assert_close(model.cameras.K[0, :2, 2], centre, rtol=0, atol=1e-9)
+        assert float(errors.rotation.median()) < 0.3
+    else:
+        assert "cx" in report.split(" — ")[0] and not bool(model.cameras.distortion.any())
+        assert float((model.cameras.K[0, :2, 2] - centre).norm()) > 1
+        assert float(errors.rotation.median()) < 0.2

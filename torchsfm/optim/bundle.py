@@ -137,6 +137,10 @@ class BundleProblem:
         """½ Σ ‖r‖² (pixels²)."""
         return float(0.5 * self.residuals().square().sum())
 
+    def robust_cost(self, loss: str, scale: float) -> float:
+        """Σ ρ(‖r‖²) with a robust ``loss`` (``none``, ``huber``, ``cauchy``) at ``scale`` pixels (pixels²)."""
+        return float(_loss(self.residuals().square().sum(-1), loss, scale)[0].sum())
+
 
 @dataclass
 class BundleResult:

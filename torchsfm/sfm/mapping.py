@@ -452,8 +452,68 @@ def pair_disagreement(model: MapperState, pairs: dict[tuple[int, int], PairMatch
 
 
 def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> str:
-    """The K shared by every view — ``reconstruction.refined_intrinsics`` of fx, fy, cx, cy and
-    the radial k1 — adjusted jointly with the cameras and points
+    """The K shared by every view adjusted with the cameras and points, in place: each
+    alternative set of ``reconstruction.refined_intrinsics`` (``|`` between them) refined from
+    the same start (:func:`refine_alternative`), and the one the observations choose kept — the
+    smallest geometric AIC (Kanatani 1998), J + 2 p σ²: J the robust cost of the observations of
+    the points the model had and every alternative kept, p the intrinsics the alternative
+    refined, σ² the smallest J over the residual degrees of freedom (2 per observation less 3 per
+    point and 6 per view, plus the 7 of the gauge). The default weighs a free principal point
+    (f, cx, cy) against one radial coefficient with the principal point at the image centre
+    (f, k1: COLMAP's SIMPLE_RADIAL): a lens's distortion otherwise pulls the principal point to
+    absorb it, an undistorted camera's off-centre principal point otherwise bends k1. Returns what
+    was done, for the progress report."""
+    alternatives = [tuple(name for name in names.split(",") if name) for names in config.reconstruction.refined_intrinsics.split("|")]
+    if len(alternatives) == 1:
+        return refine_alternative(model, config, fixed_view, alternatives[0])[0]
+    start, points = snapshot(model), model.has_point.clone()
+    outcomes = []
+    for names in alternatives:
+        load(model, start)
+        message, refined = refine_alternative(model, config, fixed_view, names)
+        outcomes.append((message, refined, snapshot(model)))
+        points &= model.has_point
+    usable = points[model.tracks.track] & model.registered[model.tracks.view]
+    costs = []
+    for _, _, state in outcomes:
+        load(model, state)
+        costs.append(robust_cost(model, points, usable, config))
+    freedom = max(2 * int(usable.sum()) - 3 * int(points.sum()) - 6 * int(model.registered.sum()) + 7, 1)
+    variance = min(costs) / freedom
+    scores = [cost + 2 * len(refined) * variance for cost, (_, refined, _) in zip(costs, outcomes)]
+    best = min(range(len(outcomes)), key=scores.__getitem__)
+    message, refined, state = outcomes[best]
+    load(model, state)
+    others = "; ".join(f"{', '.join(outcomes[k][1]) or 'none kept'} {costs[k]:.1f}" for k in range(len(outcomes)) if k != best)
+    return (f"{message} — chosen by the geometric AIC: robust cost {costs[best]:.1f} px² with {len(refined)} "
+            f"intrinsic{'s' if len(refined) != 1 else ''} (σ = {math.sqrt(variance):.2f} px) against {others}")
+
+
+def snapshot(model: MapperState) -> tuple:
+    """Copies of what refining the intrinsics changes: K, R, t, points, has_point, and the pixels
+    and radial k1 (never changed in place)."""
+    return (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone(), model.has_point.clone(), model.pixels, model.radial)
+
+
+def load(model: MapperState, state: tuple) -> None:
+    """Put a :func:`snapshot` back (copied: the snapshot can be loaded again)."""
+    model.K, model.R, model.t, model.points, model.has_point = (value.clone() for value in state[:5])
+    model.pixels, model.radial = state[5:]
+
+
+def robust_cost(model: MapperState, points: Tensor, usable: Tensor, config: Config) -> float:
+    """Σ ρ(‖r‖²) of the ``usable`` (T,) observations of ``points`` (tracks,) in the registered
+    views, with the mapper's robust loss (px²), as detected (through the model's k1, if any)."""
+    fixed = torch.zeros(len(model.corners), dtype=torch.bool)
+    problem = bundle_problem(model, torch.nonzero(model.registered).flatten(), torch.nonzero(points).flatten(), usable, fixed,
+                             ("k1",) if model.radial else ())
+    settings = bundle_settings(config)
+    return problem.robust_cost(settings.loss, settings.loss_scale)
+
+
+def refine_alternative(model: MapperState, config: Config, fixed_view: int, names: tuple[str, ...]) -> tuple[str, tuple[str, ...]]:
+    """The K shared by every view — ``names`` of fx, fy, cx, cy and the radial k1 — adjusted
+    jointly with the cameras and points
     (:class:`~torchsfm.optim.bundle.BundleProblem` ``shared_intrinsics``; an estimated k1 is
     undone in the model's pixels after each adjustment, :func:`bundle`), in place, and kept only
     where the data determine it.
@@ -467,16 +527,15 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     alone is adjusted; a focal length pinned no closer than ``FOCAL_PRECISION`` of itself (a
     critical motion leaves it free, e.g. two views whose optical axes meet) is not trusted: the
     model is restored and adjusted with K as it was. Returns what was done, for the progress
-    report."""
-    start = (model.K.clone(), model.R.clone(), model.t.clone(), model.points.clone(), model.has_point.clone(), model.pixels, model.radial)
+    report, and the names refined (none where not trusted)."""
+    start = snapshot(model)
     size = 2 * float(model.K[0, :2, 2].max()) + 1
-    names = tuple(name for name in config.reconstruction.refined_intrinsics.split(",") if name)
     rounds, deviation = adjust_intrinsics(model, config, fixed_view, names)
     free_centre, centre_note = tuple(name for name in names if name not in ("cx", "cy")), ""
     if deviation is not None and len(free_centre) < len(names):
         centre_deviation = max(float(deviation[names.index(name)]) for name in ("cx", "cy") if name in names)
         if centre_deviation > PRINCIPAL_POINT_PRECISION * size:  # from the start again: the points fit the centre there
-            model.K, model.R, model.t, model.points, model.has_point, model.pixels, model.radial = restored(start)
+            load(model, start)
             rounds, deviation = adjust_intrinsics(model, config, fixed_view, free_centre)
             names = free_centre
             centre_note = f", principal point at the image centre (the data pin it to ±{centre_deviation:.0f} px only)"
@@ -485,19 +544,13 @@ def refine_intrinsics(model: MapperState, config: Config, fixed_view: int) -> st
     spread = {name: float("inf") if deviation is None else float(deviation[k]) for k, name in enumerate(names)}
     focal_spread = max((spread[name] / value[name] for name in names if name in ("f", "fx", "fy")), default=0.0)
     if deviation is None or focal_spread > FOCAL_PRECISION:
-        model.K, model.R, model.t, model.points, model.has_point, model.pixels, model.radial = start
+        load(model, start)
         bundle(model, config, fixed_view)
         return (f"intrinsics refinement not trusted (the data pin the focal length to ±{100 * focal_spread:.0f} % only): "
-                f"focal length kept at {float(start[0][0, 0, 0]):.1f} px")
+                f"focal length kept at {float(start[0][0, 0, 0]):.1f} px"), ()
     described = ", ".join(f"{name} {value[name]:.4f} ± {spread[name]:.4f}" if name == "k1" else
                           f"{name} {value[name]:.1f} ± {spread[name]:.1f} px" for name in names)
-    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described}{centre_note}"
-
-
-def restored(start: tuple) -> tuple:
-    """Copies of :func:`refine_intrinsics`' saved state (K, R, t, points, has_point; the pixels
-    and radial k1 as they were, never changed in place)."""
-    return (*(value.clone() for value in start[:5]), *start[5:])
+    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described}{centre_note}", names
 
 
 def adjust_intrinsics(model: MapperState, config: Config, fixed_view: int, names: tuple[str, ...]) -> tuple[int, Tensor | None]:

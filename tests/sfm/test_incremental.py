@@ -521,3 +521,20 @@ def test_without_K_the_observations_choose_between_lens_distortion_and_a_free_pr
         assert "cx" in report.split(" — ")[0] and not bool(model.cameras.distortion.any())
         assert float((model.cameras.K[0, :2, 2] - centre).norm()) > 1
         assert float(errors.rotation.median()) < 0.2
+
+
+def test_without_K_two_views_refine_the_first_alternative_only(shared_data):
+    """Fountain-P11 views 0 and 5 without K: one epipolar geometry cannot tell a radial
+    distortion from the focal length (f, k1 there: k1 0.21 ± 0.05, f 931 px, 7.4° rotation
+    error), so two views get no choice of camera model: f, cx, cy, whose principal point the
+    two views leave at the centre — f 693.9 px, 0.15°."""
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    messages = []
+    model = torchsfm.reconstruct([sequence.images[0], sequence.images[5]], generator=torch.Generator().manual_seed(0),
+                                 progress=messages.append)
+    report = next(message for message in messages if message.startswith("intrinsics"))
+    assert "geometric AIC" not in report and "principal point at the image centre" in report
+    assert model.cameras.distortion is None or not bool(model.cameras.distortion.any())
+    assert abs(float(model.cameras.K[0, 0, 0]) / float(sequence.K[0, 0, 0]) - 1) < 0.02
+    errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[[0, 5]], sequence.t[[0, 5]])
+    assert float(errors.rotation.max()) < 0.5

@@ -20,11 +20,13 @@ from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import check_mask, is_grey_bytes, read_image, read_mask, reduce_image, reduce_mask, sizes_named, to_grey_bytes
+from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
 from torchsfm.pipeline import Pipeline, Progress
 from torchsfm.sfm.stages import ViewSet, default_pipeline
+from torchsfm.sfm.view_pairs import image_centre
 from torchsfm.validation import check_finite
 
 
@@ -53,13 +55,17 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
 
     Args:
         images: V >= 2 image paths or tensors (3, H, W) / (1, H, W), uint8 or float in [0, 1];
-            of different sizes only with K (portrait and landscape shots, several cameras).
+            of different sizes only with K (portrait and landscape shots, several cameras) or
+            with an EXIF focal length in every file.
         K: intrinsics (3, 3) shared by all views (of one size), or (V, 3, 3); None: unknown — the principal
             point is taken at the image centre, the focal length (shared by all views) is the
             one the files' EXIF records where every image has one and they agree, else it is
             estimated from the verified pairs' fundamental matrices (Mendonça & Cipolla, searched
             around 1.2 × the larger image side); either is refined by bundle adjustment, and the
-            estimate is the model's ``cameras.K``. All images must then have one size.
+            estimate is the model's ``cameras.K``. All images must then have one size — unless
+            every file records its focal length in EXIF: images of several sizes (several
+            cameras) then each get the K of their own EXIF focal length with the principal point
+            at their centre, held as given (one shared K is what the refinement adjusts).
         distortion: radial (k1, k2) of the camera, (2,) or (V, 2); corners are undistorted
             before any geometry (the model's keypoints are then ideal pixels).
         names: view names (default: the file names, or ``view0``, ``view1``, ...).
@@ -127,6 +133,15 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
         raise InputError(f"one K for images of different sizes ({sizes_named(loaded)}): give each view's K, (V, 3, 3) "
                          f"(a camera turned to portrait has its K turned with it)")
+    if estimate_focal and len({image.shape[-2:] for image in loaded}) > 1 and all(focal is not None for focal in exif):
+        # several cameras and no K: each view's K from its own EXIF focal length, held as given
+        # (the intrinsics refinement adjusts one K that every view shares)
+        K = K.clone()
+        K[kept] = torch.stack([intrinsics(focal, image_centre(image.shape[-2:])) for focal, image in zip(exif, loaded)])
+        estimate_focal = False
+        if progress is not None:
+            progress(f"images of different sizes ({sizes_named(loaded)}) without K: each view's K from its EXIF focal length "
+                     f"({', '.join(f'{focal:.1f}' for focal in exif)} px), the principal point at its centre, not refined")
     config = config or Config()
     if moving_objects is not None:
         if moving_objects not in ("reject", "reconstruct"):

@@ -109,8 +109,8 @@ class ViewSet:
                 raise InputError(f"{len(masks)} masks for {V} images: give one per image (None for none)")
             masks = [None if mask is None else check_mask(mask, image, f"mask {v}") for v, (mask, image) in enumerate(zip(masks, images))]
         if estimate_focal and len({image.shape[-2:] for image in images}) > 1:
-            raise InputError(f"images of different sizes ({sizes_named(images)}) need their intrinsics K: without K "
-                             f"one camera, with one image size, is assumed")
+            raise InputError(f"images of different sizes ({sizes_named(images)}) need their intrinsics K (or a focal "
+                             f"length in every file's EXIF): without K one camera, with one image size, is assumed")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],

@@ -64,8 +64,9 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
             around 1.2 × the larger image side); either is refined by bundle adjustment, and the
             estimate is the model's ``cameras.K``. All images must then have one size — unless
             every file records its focal length in EXIF: images of several sizes (several
-            cameras) then each get the K of their own EXIF focal length with the principal point
-            at their centre, held as given (one shared K is what the refinement adjusts).
+            cameras), or whose EXIF focal lengths disagree (a zoom), then each get the K of their
+            own EXIF focal length with the principal point at their centre, held as given (one
+            shared K is what the refinement adjusts).
         distortion: radial (k1, k2) of the camera, (2,) or (V, 2); corners are undistorted
             before any geometry (the model's keypoints are then ideal pixels).
         names: view names (default: the file names, or ``view0``, ``view1``, ...).
@@ -133,14 +134,17 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
         raise InputError(f"one K for images of different sizes ({sizes_named(loaded)}): give each view's K, (V, 3, 3) "
                          f"(a camera turned to portrait has its K turned with it)")
-    if estimate_focal and len({image.shape[-2:] for image in loaded}) > 1 and all(focal is not None for focal in exif):
-        # several cameras and no K: each view's K from its own EXIF focal length, held as given
-        # (the intrinsics refinement adjusts one K that every view shares)
+    several_sizes = len({image.shape[-2:] for image in loaded}) > 1
+    if estimate_focal and all(focal is not None for focal in exif) and (several_sizes or shared_focal(exif) is None):
+        # several cameras (or a zoom) and no K: each view's K from its own EXIF focal length, held
+        # as given (the intrinsics refinement adjusts one K that every view shares)
         K = K.clone()
         K[kept] = torch.stack([intrinsics(focal, image_centre(image.shape[-2:])) for focal, image in zip(exif, loaded)])
         estimate_focal = False
         if progress is not None:
-            progress(f"images of different sizes ({sizes_named(loaded)}) without K: each view's K from its EXIF focal length "
+            cameras = (f"images of different sizes ({sizes_named(loaded)})" if several_sizes else
+                       f"EXIF focal lengths more than {100 * EXIF_AGREEMENT:g} % apart (a zoom, or several cameras)")
+            progress(f"{cameras} without K: each view's K from its EXIF focal length "
                      f"({', '.join(f'{focal:.1f}' for focal in exif)} px), the principal point at its centre, not refined")
     config = config or Config()
     if moving_objects is not None:

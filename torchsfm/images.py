@@ -99,6 +99,13 @@ def sizes_named(images: list[Tensor]) -> str:
     return ", ".join(f"{w}x{h}" for h, w in sorted({tuple(image.shape[-2:]) for image in images})) + " px"
 
 
+def one_camera(images: list[Tensor]) -> bool:
+    """Whether (C, H, W) images can share one camera's intrinsics about their centres: one size,
+    or one size and its transpose (the camera turned to portrait for some)."""
+    sizes = {tuple(image.shape[-2:]) for image in images}
+    return len(sizes) == 1 or (len(sizes) == 2 and min(sizes) == max(sizes)[::-1])
+
+
 def read_mask(path: str | Path) -> Tensor:
     """Read a mask image (COLMAP's convention: features only where it is not black) as (H, W)
     bool, True where features may be detected."""

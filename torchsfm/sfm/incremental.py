@@ -19,7 +19,8 @@ from torch import Tensor
 from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
-from torchsfm.images import check_mask, is_grey_bytes, read_image, read_mask, reduce_image, reduce_mask, sizes_named, to_grey_bytes
+from torchsfm.images import (check_mask, is_grey_bytes, one_camera, read_image, read_mask, reduce_image, reduce_mask, sizes_named,
+                             to_grey_bytes)
 from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
@@ -134,7 +135,7 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
         raise InputError(f"one K for images of different sizes ({sizes_named(loaded)}): give each view's K, (V, 3, 3) "
                          f"(a camera turned to portrait has its K turned with it)")
-    several_sizes = len({image.shape[-2:] for image in loaded}) > 1
+    several_sizes = not one_camera(loaded)
     if estimate_focal and all(focal is not None for focal in exif) and (several_sizes or shared_focal(exif) is None):
         # several cameras (or a zoom) and no K: each view's K from its own EXIF focal length, held
         # as given (the intrinsics refinement adjusts one K that every view shares)

@@ -64,6 +64,11 @@ class MapperState:
         self.observed = self.pixels  # the pixels before an estimated radial distortion is undone (K unknown)
         self.radial = 0.0  # that distortion's k1: undone in ``pixels``
 
+    @property
+    def one_principal_point(self) -> bool:
+        """Whether every view has the same principal point (not so where some are turned to portrait)."""
+        return bool((self.K[:, :2, 2] == self.K[0, :2, 2]).all())
+
     def centres(self) -> Tensor:
         """(V, 3) camera centres (meaningful for registered views)."""
         return -(self.R.transpose(1, 2) @ self.t[..., None])[..., 0]
@@ -270,16 +275,23 @@ def bundle_problem(model: MapperState, views: Tensor, tracks: Tensor, usable: Te
                    intrinsics: tuple[str, ...] = ()) -> BundleProblem:
     """The bundle problem of the model's ``views`` (C,) and ``tracks`` (P,) with their ``usable``
     (T,) observations; ``fixed`` (V,) views hold still, the named shared ``intrinsics`` move
-    (with ``k1``: the observations as detected, the distortion in the cameras)."""
+    (with ``k1``: the observations as detected, the distortion in the cameras; where the views'
+    principal points differ — some turned to portrait — the observations are taken about them,
+    so that one K is shared)."""
     radial = "k1" in intrinsics
+    K, observations = model.K[views], (model.observed if radial else model.pixels)[usable]
+    if intrinsics and not model.one_principal_point:
+        observations = observations - model.K[model.tracks.view[usable], :2, 2]
+        K = K.clone()
+        K[:, :2, 2] = 0
     camera_of = torch.full((len(model.corners),), -1, dtype=torch.long)
     camera_of[views] = torch.arange(views.numel())
     point_of = torch.full((model.tracks.num_tracks,), -1, dtype=torch.long)
     point_of[tracks] = torch.arange(tracks.numel())
     return BundleProblem(
-        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=model.K[views],
+        camera_model="pinhole", rotations=model.R[views], translations=model.t[views], intrinsics=K,
         points=model.points[tracks], camera_index=camera_of[model.tracks.view[usable]],
-        point_index=point_of[model.tracks.track[usable]], observations=(model.observed if radial else model.pixels)[usable],
+        point_index=point_of[model.tracks.track[usable]], observations=observations,
         fixed_cameras=fixed[views], shared_intrinsics=intrinsics, radial=model.radial if radial else 0.0,
     )
 
@@ -313,11 +325,16 @@ def bundle(model: MapperState, config: Config, fixed_view: int, usable: Tensor |
     result = bundle_adjust(problem, config=bundle_settings(config))
     adjusted = result.problem
     model.R[views], model.t[views], model.points[tracks] = adjusted.rotations, adjusted.translations, adjusted.points
-    if intrinsics:
+    if intrinsics and model.one_principal_point:
         model.K = adjusted.intrinsics[:1].expand_as(model.K).clone()
+    elif intrinsics:  # the shared focal length, each view's principal point as it was
+        model.K = model.K.clone()
+        model.K[:, :2, :2] = adjusted.intrinsics[0, :2, :2]
     if "k1" in intrinsics:  # undone in the pixels every other step uses
         model.radial = adjusted.radial
-        model.pixels = undistort_points(model.observed, model.K[0], model.K.new_tensor([model.radial, 0.0]))
+        lens = model.K.new_tensor([model.radial, 0.0])
+        model.pixels = (undistort_points(model.observed, model.K[0], lens) if model.one_principal_point else
+                        undistort_points(model.observed[:, None], model.K[model.tracks.view], lens)[:, 0])
     return result.final_cost / max(int(usable.sum()), 1)
 
 
@@ -532,6 +549,10 @@ def refine_alternative(model: MapperState, config: Config, fixed_view: int, name
     report, and the names refined (none where not trusted)."""
     start = snapshot(model)
     size = 2 * float(model.K[0, :2, 2].max()) + 1
+    turned_note = ""
+    if not model.one_principal_point and {"cx", "cy"} & set(names):  # a turned view's principal point turns with it
+        names = tuple(name for name in names if name not in ("cx", "cy"))
+        turned_note = ", principal points at each image's centre (views turned to portrait)"
     rounds, deviation = adjust_intrinsics(model, config, fixed_view, names)
     free_centre, centre_note = tuple(name for name in names if name not in ("cx", "cy")), ""
     if deviation is not None and len(free_centre) < len(names):
@@ -552,7 +573,7 @@ def refine_alternative(model: MapperState, config: Config, fixed_view: int, name
                 f"focal length kept at {float(start[0][0, 0, 0]):.1f} px"), ()
     described = ", ".join(f"{name} {value[name]:.4f} ± {spread[name]:.4f}" if name == "k1" else
                           f"{name} {value[name]:.1f} ± {spread[name]:.1f} px" for name in names)
-    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described}{centre_note}", names
+    return f"intrinsics refined by bundle adjustment ({rounds} round{'s' if rounds > 1 else ''}): {described}{centre_note}{turned_note}", names
 
 
 def adjust_intrinsics(model: MapperState, config: Config, fixed_view: int, names: tuple[str, ...]) -> tuple[int, Tensor | None]:

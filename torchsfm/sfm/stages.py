@@ -26,7 +26,7 @@ from torchsfm.camera import FOCAL_PRIOR, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
 from torchsfm.geometry.self_calibration import intrinsics
-from torchsfm.images import check_image, check_mask, is_grey_bytes, sizes_named, to_grey_bytes
+from torchsfm.images import check_image, check_mask, is_grey_bytes, one_camera, sizes_named, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.samplers import side_generator
@@ -108,9 +108,10 @@ class ViewSet:
             if len(masks) != V:
                 raise InputError(f"{len(masks)} masks for {V} images: give one per image (None for none)")
             masks = [None if mask is None else check_mask(mask, image, f"mask {v}") for v, (mask, image) in enumerate(zip(masks, images))]
-        if estimate_focal and len({image.shape[-2:] for image in images}) > 1:
+        if estimate_focal and not one_camera(images):
             raise InputError(f"images of different sizes ({sizes_named(images)}) need their intrinsics K (or a focal "
-                             f"length in every file's EXIF): without K one camera, with one image size, is assumed")
+                             f"length in every file's EXIF): without K one camera is assumed, with one image size (some views may be "
+                             f"turned to portrait)")
         K = K.double().expand(V, 3, 3)
         distortion = K.new_zeros(V, 2) if distortion is None else distortion.double().expand(V, 2)
         return cls(images=list(images), K=K, distortion=distortion, names=names or [f"view{v}" for v in range(V)],
@@ -177,16 +178,16 @@ class SelfCalibrate(ConfiguredStage):
     def forward(self, state: ViewSet) -> ViewSet:
         if not state.estimate_focal:
             return state
-        size = state.images[0].shape[-2:]
+        sizes = [tuple(image.shape[-2:]) for image in state.images]
         if state.exif_focal is not None:
-            K = intrinsics(state.exif_focal, image_centre(size))
+            K = torch.stack([intrinsics(state.exif_focal, image_centre(size)) for size in sizes])
             state.report(f"focal length from EXIF: {state.exif_focal:.1f} px")
         else:
-            K, determined = self_calibrate(state.pairs, size, self.config)
-            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(K[0, 0]):.1f} px" if determined else
+            K, determined = self_calibrate(state.pairs, sizes, self.config)
+            state.report(f"focal length estimated from {len(state.pairs)} verified pairs: {float(K[0, 0, 0]):.1f} px" if determined else
                          f"the {len(state.pairs)} verified pairs do not determine the focal length (a camera moving without "
-                         f"turning): the prior {float(K[0, 0]):.1f} px ({FOCAL_PRIOR} x the larger image side)")
-        state.K = K.expand(len(state.images), 3, 3)
+                         f"turning): the prior {float(K[0, 0, 0]):.1f} px ({FOCAL_PRIOR} x the larger image side)")
+        state.K = K
         return state
 
 

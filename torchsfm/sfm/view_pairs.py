@@ -274,21 +274,31 @@ def image_centre(size: tuple[int, int]) -> Tensor:
     return torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
 
 
-def self_calibrate(pairs: dict[tuple[int, int], PairMatches], size: tuple[int, int], config: Config) -> tuple[Tensor, bool]:
-    """K (3, 3) with the principal point at the image centre and the focal length that makes the
-    verified pairs' essential matrices best (pairs a homography explains are left out when
-    others exist: their F does not fix the focal length), and whether the pairs determined it:
-    where they do not (a camera translating without turning, e.g. driving straight), the focal
-    length is the prior ``FOCAL_PRIOR`` × the larger image side, as in COLMAP."""
+def self_calibrate(pairs: dict[tuple[int, int], PairMatches], sizes: list[tuple[int, int]], config: Config) -> tuple[Tensor, bool]:
+    """K (V, 3, 3) of the views of ``sizes`` (H, W) each — one camera, some views possibly turned
+    to portrait — with the principal point at each image's centre and the focal length that
+    makes the verified pairs' essential matrices best (pairs a homography explains are left out
+    when others exist: their F does not fix the focal length), and whether the pairs determined
+    it: where they do not (a camera translating without turning, e.g. driving straight), the
+    focal length is the prior ``FOCAL_PRIOR`` × the larger image side, as in COLMAP. Where the
+    centres differ (a turned view), each pair's F is taken to coordinates about them."""
     if not pairs:
         raise DegenerateConfigurationError("no view pair could be verified, so the focal length cannot be estimated: give K")
-    H, W = size
-    centre = image_centre(size)
-    general = [m.F for m in pairs.values() if m.homography_ratio <= config.reconstruction.max_homography_ratio]
-    F = torch.stack(general or [m.F for m in pairs.values()]).double()
-    prior = FOCAL_PRIOR * max(H, W)
-    focal = focal_from_fundamentals(F, centre, prior)
-    return intrinsics(prior if focal is None else focal, centre), focal is not None
+    centres = torch.stack([image_centre(size) for size in sizes])  # (V, 2)
+    one_centre = bool((centres == centres[0]).all())
+    general = {key: m for key, m in pairs.items() if m.homography_ratio <= config.reconstruction.max_homography_ratio} or pairs
+    F = torch.stack([m.F.double() if one_centre else about_centres(m.F.double(), centres[i], centres[j]) for (i, j), m in general.items()])
+    prior = FOCAL_PRIOR * max(max(size) for size in sizes)
+    focal = focal_from_fundamentals(F, centres[0] if one_centre else centres.new_zeros(2), prior)
+    return torch.stack([intrinsics(prior if focal is None else focal, centre) for centre in centres]), focal is not None
+
+
+def about_centres(F: Tensor, centre_i: Tensor, centre_j: Tensor) -> Tensor:
+    """F (3, 3) with x_jᵀ F x_i = 0 in pixels, for coordinates about the centres (2,) of views i and
+    j: T_jᵀ F T_i, T the translation from centred coordinates to pixels."""
+    T_i, T_j = torch.eye(3, dtype=F.dtype), torch.eye(3, dtype=F.dtype)
+    T_i[:2, 2], T_j[:2, 2] = centre_i, centre_j
+    return T_j.T @ F @ T_i
 
 
 def reject_moving_tracks(tracks: Tracks, corners: list[Tensor], config: Config, generator: torch.Generator

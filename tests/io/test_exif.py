@@ -168,3 +168,32 @@ def test_a_zoom_without_K_takes_each_views_K_from_its_exif(shared_data, tmp_path
     torch.testing.assert_close(focal, true_focal * torch.tensor([1.0, 2, 1, 2, 1], dtype=torch.float64), rtol=1e-5, atol=0)
     errors = camera_errors(model.cameras.R, model.cameras.t, sequence.R[:5], sequence.t[:5])
     assert float(errors.rotation.median()) < 0.3
+
+
+def test_a_portrait_shot_with_the_same_exif_focal_length_is_refined_with_the_others(shared_data, tmp_path):
+    """Fountain-P11 views 0-4, view 2 turned to portrait, every file recording the same focal
+    length 3 % over the truth: one camera, so the EXIF value starts one shared focal length that
+    bundle adjustment refines (within 1 % of the truth), each view's principal point at its
+    image's centre."""
+    from PIL import Image
+
+    sequence = read_strecha(shared_data / "strecha_fountain_P11")
+    true_focal = float(sequence.K[0, 0, 0])
+    paths, messages = [], []
+    for v in range(5):
+        image = Image.open(sequence.images[v])
+        if v == 2:
+            image = image.transpose(Image.Transpose.ROTATE_270)  # a quarter turn clockwise: 512 x 768
+        path = tmp_path / f"{v}.jpg"
+        image.save(path, quality=95)
+        width = image.size[0]
+        entries = [(0x920A, 5, 1, rational(7.5)), (0xA20E, 5, 1, rational(10 * 1.03 * true_focal / 7.5)),
+                   (0xA210, 3, 1, struct.pack("<H", 3)), (0xA002, 4, 1, struct.pack("<I", width))]
+        path.write_bytes(with_exif(path.read_bytes(), tiff(entries)))
+        paths.append(path)
+    model = torchsfm.reconstruct(paths, generator=torch.Generator().manual_seed(0), progress=messages.append)
+    assert any("focal length from EXIF" in message for message in messages)
+    assert model.view_indices == list(range(5))
+    assert abs(float(model.cameras.K[0, 0, 0]) / true_focal - 1) < 0.01
+    assert bool((model.cameras.K[:, 0, 0] == model.cameras.K[0, 0, 0]).all())
+    torch.testing.assert_close(model.cameras.K[2, :2, 2], torch.tensor([255.5, 383.5], dtype=torch.float64), rtol=0, atol=1e-9)

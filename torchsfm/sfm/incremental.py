@@ -21,13 +21,12 @@ from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import (check_mask, is_grey_bytes, one_camera, read_image, read_mask, reduce_image, reduce_mask, sizes_named,
                              to_grey_bytes)
-from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
 from torchsfm.pipeline import Pipeline, Progress
 from torchsfm.sfm.stages import ViewSet, default_pipeline
-from torchsfm.sfm.view_pairs import image_centre
+from torchsfm.sfm.view_pairs import centred_intrinsics
 from torchsfm.validation import check_finite
 
 
@@ -135,15 +134,15 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
     if one_K and not estimate_focal and len({image.shape[-2:] for image in loaded}) > 1:
         raise InputError(f"one K for images of different sizes ({sizes_named(loaded)}): give each view's K, (V, 3, 3) "
                          f"(a camera turned to portrait has its K turned with it)")
-    several_sizes = not one_camera(loaded)
-    if estimate_focal and all(focal is not None for focal in exif) and (several_sizes or shared_focal(exif) is None):
+    several_cameras = not one_camera(loaded)
+    if estimate_focal and all(focal is not None for focal in exif) and (several_cameras or shared_focal(exif) is None):
         # several cameras (or a zoom) and no K: each view's K from its own EXIF focal length, held
         # as given (the intrinsics refinement adjusts one K that every view shares)
         K = K.clone()
-        K[kept] = torch.stack([intrinsics(focal, image_centre(image.shape[-2:])) for focal, image in zip(exif, loaded)])
+        K[kept] = centred_intrinsics(exif, [image.shape[-2:] for image in loaded])
         estimate_focal = False
         if progress is not None:
-            cameras = (f"images of different sizes ({sizes_named(loaded)})" if several_sizes else
+            cameras = (f"images of different sizes ({sizes_named(loaded)})" if several_cameras else
                        f"EXIF focal lengths more than {100 * EXIF_AGREEMENT:g} % apart (a zoom, or several cameras)")
             progress(f"{cameras} without K: each view's K from its EXIF focal length "
                      f"({', '.join(f'{focal:.1f}' for focal in exif)} px), the principal point at its centre, not refined")

@@ -25,7 +25,6 @@ from torch import Tensor
 from torchsfm.camera import FOCAL_PRIOR, undistort_points
 from torchsfm.config import Config
 from torchsfm.errors import InputError
-from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.images import check_image, check_mask, is_grey_bytes, one_camera, sizes_named, to_grey_bytes
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.reconstruction import Reconstruction
@@ -35,7 +34,7 @@ from torchsfm.pipeline import ConfiguredStage, Pipeline, Progress
 from torchsfm.sfm.pairs import bridge_pairs, coarse_features, group_root, turned_homographies
 from torchsfm.sfm.sift import DetectSiftFeatures, MatchSiftFeatures, sift_homographies
 from torchsfm.sfm.tracks import Tracks, build_tracks, chained_matches
-from torchsfm.sfm.view_pairs import (PairMatches, detect, epipolar_matches, guided_matches, image_centre, putative_matches,
+from torchsfm.sfm.view_pairs import (PairMatches, centred_intrinsics, detect, epipolar_matches, guided_matches, putative_matches,
                                      reject_moving_tracks, self_calibrate, verify_pairs)
 
 
@@ -180,7 +179,7 @@ class SelfCalibrate(ConfiguredStage):
             return state
         sizes = [tuple(image.shape[-2:]) for image in state.images]
         if state.exif_focal is not None:
-            K = torch.stack([intrinsics(state.exif_focal, image_centre(size)) for size in sizes])
+            K = centred_intrinsics([state.exif_focal] * len(sizes), sizes)
             state.report(f"focal length from EXIF: {state.exif_focal:.1f} px")
         else:
             K, determined = self_calibrate(state.pairs, sizes, self.config)

@@ -274,6 +274,12 @@ def image_centre(size: tuple[int, int]) -> Tensor:
     return torch.tensor([(W - 1) / 2, (H - 1) / 2], dtype=torch.float64)
 
 
+def centred_intrinsics(focals: list[float], sizes: list[tuple[int, int]]) -> Tensor:
+    """K (V, 3, 3) of square pixels: each view's focal length (px) with the principal point at
+    the centre of its image of size (H, W)."""
+    return torch.stack([intrinsics(focal, image_centre(size)) for focal, size in zip(focals, sizes)])
+
+
 def self_calibrate(pairs: dict[tuple[int, int], PairMatches], sizes: list[tuple[int, int]], config: Config) -> tuple[Tensor, bool]:
     """K (V, 3, 3) of the views of ``sizes`` (H, W) each — one camera, some views possibly turned
     to portrait — with the principal point at each image's centre and the focal length that
@@ -290,7 +296,7 @@ def self_calibrate(pairs: dict[tuple[int, int], PairMatches], sizes: list[tuple[
     F = torch.stack([m.F.double() if one_centre else about_centres(m.F.double(), centres[i], centres[j]) for (i, j), m in general.items()])
     prior = FOCAL_PRIOR * max(max(size) for size in sizes)
     focal = focal_from_fundamentals(F, centres[0] if one_centre else centres.new_zeros(2), prior)
-    return torch.stack([intrinsics(prior if focal is None else focal, centre) for centre in centres]), focal is not None
+    return centred_intrinsics([prior if focal is None else focal] * len(sizes), sizes), focal is not None
 
 
 def about_centres(F: Tensor, centre_i: Tensor, centre_j: Tensor) -> Tensor:

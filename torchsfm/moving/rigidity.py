@@ -40,8 +40,10 @@ def rigidity_residuals(support: Tensor, warped: Tensor, parallax: Tensor) -> tup
     a = parallax[:, None, :, 1] * dx - parallax[:, None, :, 0] * dy  # μ_i · Δ⊥ with Δ⊥ = (−Δy, Δx)
     b = parallax[:, support, None, 1] * dx - parallax[:, support, None, 0] * dy  # μ_s · Δ⊥
     cross = a[0] * b[1] - b[0] * a[1]
-    length_sq = dx * dx + dy * dy
-    variance = length_sq[0] * (a[1] * a[1] + b[1] * b[1]) + length_sq[1] * (a[0] * a[0] + b[0] * b[0])
-    residual = torch.where(variance > 0, cross / floor_tiny(variance).sqrt(), torch.zeros_like(cross))
-    strength = ((b[0] * b[0] + b[1] * b[1]) / floor_tiny((0.5 * (length_sq[0] + length_sq[1])))).sqrt()
+    length_sq = dx.square_() + dy.square_()  # in place from here on: (2, S, N) tables are the cost
+    a.square_()
+    b.square_()
+    variance = length_sq[0] * (a[1] + b[1]) + length_sq[1] * (a[0] + b[0])
+    residual = torch.where(variance > 0, cross / floor_tiny(variance).sqrt_(), torch.zeros_like(cross))
+    strength = (b[0] + b[1]).div_(floor_tiny(length_sq[0].add_(length_sq[1]).mul_(0.5))).sqrt_()
     return residual, strength

@@ -199,9 +199,12 @@ def ransac(
             ok = improved & (current_inliers.sum(-1) >= s)
             score, inliers = evaluate(live_model, refit[:, None], ok[:, None], live_data, live_valid)
             better = improved & (score[:, 0] >= current_score)
+            moved = better & (inliers[:, 0] != current_inliers).any(-1)
             current = _where_batch(better, refit, current)
             current_score = torch.where(better, score[:, 0], current_score)
             current_inliers = _where_batch(better, inliers[:, 0], current_inliers)
+            if not bool(moved.any()):
+                break  # the same inliers give the same refit: every further one would repeat this one
         best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
         trials[live] += num_samples
         ratio = best_inliers.sum(-1).double() / num_valid.clamp_min(1).double()

@@ -146,6 +146,31 @@ def test_the_inlier_mask_is_the_returned_models_mask(model_class, local_refits):
     assert torch.equal(result.inlier_mask, (residuals < config.inlier_threshold**2) & valid)
 
 
+def test_local_refits_stop_once_the_inliers_stop_moving():
+    """Noise-free inliers and far outliers: a minimal sample of inliers already has every
+    inlier, so the first refit of an improved round finds the inliers it was fitted on and ends
+    the refits (a second would repeat it); the answer is the one a single refit gives."""
+    scene = synthetic_two_view(200, outlier_ratio=0.3, seed=4)
+    data = _data(scene)
+
+    class Counting(FundamentalModel):
+        refits = 0
+
+        def fit_weighted(self, data, weights):
+            Counting.refits += 1
+            return super().fit_weighted(data, weights)
+
+    found = {}
+    for refits in (1, 3):
+        Counting.refits = 0
+        config = dataclasses.replace(RansacConfig(), local_refits=refits)
+        found[refits] = ransac(Counting(data), data, config, generator=torch.Generator().manual_seed(0)), Counting.refits
+    (one, one_calls), (three, three_calls) = found[1], found[3]
+    assert torch.equal(three.inlier_mask, one.inlier_mask) and torch.equal(three.inlier_mask[0], scene.is_inlier)
+    assert_close(three.model, one.model, rtol=0, atol=1e-12)
+    assert three_calls == one_calls > 0
+
+
 def test_projective_resection_residuals_of_many_cameras_equal_one_at_a_time():
     """B = 2 problems, H = 5 cameras each scored in one product against each camera written out
     (1e-12 relative); a point on a camera's principal plane (projection at infinity) gets +inf."""

@@ -71,7 +71,7 @@ class RansacConfig:
     ``inlier_threshold`` is in the residual's own unit: pixels of Sampson distance for the
     fundamental matrix. ``confidence`` is p of eq. 3.3.7. ``hypotheses_per_round`` is how many
     minimal samples are drawn and scored as one batch before the adaptive stop is re-checked.
-    ``local_refits`` non-minimal fits on the inliers polish each new best model (LO-RANSAC;
+    Up to ``local_refits`` non-minimal fits on the inliers polish each new best model (LO-RANSAC;
     ours, 0 is the thesis' plain RANSAC). ``preemptive_points`` > 0 scores every hypothesis on
     that many random points first and fully scores only the best ``preemptive_keep`` fraction
     (ours, for speed; 0 scores everything on all points).

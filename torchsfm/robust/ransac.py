@@ -104,7 +104,8 @@ def ransac(
     ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
     problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
     while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
-    sees the inlier ratio of a refined model. A problem stops drawing once its adaptive trial
+    sees the inlier ratio of a refined model; the refits end early once no problem's inliers
+    moved (a refit of the same inliers would repeat the last one). A problem stops drawing once its adaptive trial
     count is reached; later rounds run on the problems still drawing only (the model plug-in's
     ``restricted``), so a batch costs about what its problems cost one at a time, not its
     slowest problem times B.

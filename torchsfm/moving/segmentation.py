@@ -44,7 +44,9 @@ minimal-sample models:
    scene (``sizes`` and ``coverage`` are per label).
 6. **The scene settled**: motions the scene's rigid motion explains join it, pieces of it that
    it does not explain are cut out as bodies, the scene refitted without them until it cuts
-   nothing more (:func:`settle_scene`, :func:`scene_excess`); then again with the depth order
+   nothing more (:func:`settle_scene`, :func:`scene_excess`; a scene whose parallax is beyond
+   its own noise but within the tracker's floor explains a track by its projective
+   reconstruction too: :func:`weak_parallax`, a room's planes split apart); then again with the depth order
    too: a track that the scene's pose puts behind both cameras is not explained
    (:func:`beyond_infinity`: a car overtaking the camera is seen exactly like static points
    behind it, which every epipolar and projective test accepts).
@@ -100,6 +102,9 @@ CHUNK_ELEMENTS = 2**21  # numbers per hypothesis chunk: memory bounded for thous
 REFITS = 3  # trimmed refits of a motion's F (diagnostics)
 BLOCK_ELEMENTS = 2**15  # tracks × set-and-pair problems fitted at a time (see ``track_residuals``)
 SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
+WEAK_PARALLAX_RATIO = 3.0  # noise alone puts a plane's tracks 2x as far from its homographies (transfer distance,
+# noise in both images: 2σ RMS) as from its F fits (Sampson distance: σ); measured 2.09-2.15 on synthetic planes at
+# σ = 0.1-1 px; 3 leaves parallax of √5 σ RMS beyond the noise: the plane explains the tracks measurably worse than F
 EIGEN_RESIDUAL = 1e-6  # largest LOBPCG residual accepted: it stops near 1e-8 (sqrt of float64 eps); a stalled run is far off
 
 
@@ -299,27 +304,50 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     parallax moves by one homography per frame pair, and the F fitted to it is degenerate (any F
     compatible with the homography fits, and extrapolates anywhere): there a track's excess is the
     lesser of that and its RMS transfer distance to those homographies over its bound (d = 2n).
+    A scene whose parallax is within the noise floor but beyond its own noise
+    (:func:`weak_parallax`: a few planes of a room seen from a distance, split apart by the
+    clustering) takes the least of those and of its projective reconstruction's excess, where its
+    tracks tie the frames together: a track any of the three explains is consistent (the
+    reconstruction of a scene with weak parallax extrapolates to the rest of the scene's planes,
+    where its homographies and F fits do not; alone it would also cut pieces of a scene it fits
+    badly).
     """
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
     plane = plane_residuals(tracks, visible, scene, pairs)
     parallax = has_parallax(plane, scene, config)
     if tied and parallax:
-        group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
-                            resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
-                            refinements=config.scene_refinements, threshold=config.scene_tolerance,
-                            significance=config.scene_significance, generator=generator)
-        if not isinstance(group, str):
-            rms = torch.where(group.rms.isfinite(), group.rms, torch.nan)
-            terms = 2 * group.frames_seen.clamp_min(3)
-            return rms / _bound(rms[scene].nanmedian(), terms - 3, terms, config)
-    rms, judged = track_residuals(tracks, visible, scene[None], pairs)
-    rms = torch.where(judged[0], rms[0], torch.nan)
+        reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
+        if reconstructed is not None:
+            return reconstructed
+    rms = epipolar_residuals(tracks, visible, scene, pairs)
     seen = pairs_seen(visible, pairs)
     excess = rms / _bound(rms[scene].nanmedian(), seen, seen, config)
     if parallax:
         return excess
     # no parallax: the scene's homographies are its motion, and its F fits are degenerate
-    return torch.fmin(excess, plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config))
+    excess = torch.fmin(excess, plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config))
+    if not (tied and weak_parallax(plane, rms, scene)):
+        return excess
+    # parallax beyond the scene's own noise: its reconstruction is one more way a static track is explained
+    reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
+    return excess if reconstructed is None else torch.fmin(excess, reconstructed)
+
+
+def reconstruction_excess(tracks: Tensor, visible: Tensor, scene: Tensor, config: SegmentationConfig,
+                          generator: torch.Generator) -> Tensor | None:
+    """(N,) every track's reprojection RMS under the (N,) bool ``scene`` tracks' projective
+    reconstruction over all frames (:func:`~torchsfm.moving.static_tracks.rigid_group`) over its
+    bound (d = 2m - 3 for m frames; NaN where not judged), or None where the reconstruction
+    fails (:func:`scene_excess`)."""
+    group = rigid_group(tracks, visible, scene, fundamental_ransac=FundamentalConfig().ransac,
+                        resection_ransac=MovingObjectsConfig().resection_ransac,  # the project's defaults
+                        refinements=config.scene_refinements, threshold=config.scene_tolerance,
+                        significance=config.scene_significance, generator=generator)
+    if isinstance(group, str):
+        return None
+    rms = torch.where(group.rms.isfinite(), group.rms, torch.nan)
+    terms = 2 * group.frames_seen.clamp_min(3)
+    return rms / _bound(rms[scene].nanmedian(), terms - 3, terms, config)
 
 
 def with_depth_order(excess: Tensor, tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor,
@@ -368,8 +396,26 @@ def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tenso
 def plane_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
     """(N,) every track's RMS transfer distance (pixels) to the (N,) bool ``members`` tracks'
     homographies, one per frame pair (:func:`track_residuals`); NaN where not judged."""
-    plane, judged = track_residuals(tracks, visible, members[None], pairs, "homography")
-    return torch.where(judged[0], plane[0], torch.nan)
+    return _one_set_residuals(tracks, visible, members, pairs, "homography")
+
+
+def epipolar_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+    """(N,) every track's RMS Sampson distance (pixels) to the (N,) bool ``members`` tracks'
+    fundamental matrices, one per frame pair (:func:`track_residuals`); NaN where not judged."""
+    return _one_set_residuals(tracks, visible, members, pairs, "fundamental")
+
+
+def _one_set_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, model: str) -> Tensor:
+    """:func:`track_residuals` of one (N,) bool set -> (N,), NaN where not judged."""
+    rms, judged = track_residuals(tracks, visible, members[None], pairs, model)
+    return torch.where(judged[0], rms[0], torch.nan)
+
+
+def weak_parallax(plane: Tensor, epipolar: Tensor, members: Tensor) -> bool:
+    """Whether the (N,) bool ``members`` tracks have parallax beyond their own noise: the median
+    over them of their (N,) :func:`plane_residuals` beyond ``WEAK_PARALLAX_RATIO`` times that of
+    their (N,) :func:`epipolar_residuals` (within the noise floor, :func:`has_parallax` says no)."""
+    return float(plane[members].nanmedian()) > WEAK_PARALLAX_RATIO * float(epipolar[members].nanmedian())
 
 
 def has_parallax(plane: Tensor, members: Tensor, config: SegmentationConfig) -> bool:
@@ -562,11 +608,13 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     the scene, renumbered: the converse of :func:`join_explained`. A scene fit pulled by the body
     tracks it still holds can fail to explain the rest of the background, which the clustering
     split off as a motion of its own, while that clean half's fit explains the scene.
-    Only for a scene with parallax (:func:`has_parallax`): a camera that only turns, a plane or a
+    Only for a scene with parallax (:func:`has_parallax`, or :func:`weak_parallax`: beyond its
+    own noise): a camera that only turns, a plane or a
     distant scene is explained by any motion that shares the camera's rotation (as points at
     infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted."""
     scene = labels == 0
-    if not has_parallax(plane_residuals(tracks, visible, scene, pairs), scene, config):
+    plane = plane_residuals(tracks, visible, scene, pairs)
+    if not has_parallax(plane, scene, config) and not weak_parallax(plane, epipolar_residuals(tracks, visible, scene, pairs), scene):
         return labels
     explaining = []
     for motion in range(1, int(labels.max()) + 1):

@@ -3,7 +3,11 @@
 Data (``../shared/data``): every rigid sequence of ``hopkins155_subset`` + ``hopkins155_dev``
 (all frames; static-camera sequences included; the non-rigid ``arm``, ``articulated``,
 ``dancing`` left out), every clip of ``kt3dmoseg_dev`` (KITTI tracks with visibility gaps), and
-the three scenes of ``adelaidermf_F`` (two views, per-match labels with gross outliers).
+the three scenes of ``adelaidermf_F`` (two views, per-match labels with gross outliers). Row
+set ``Hopkins155-2``: the two-motion sequences Hopkins155 forms from each three-motion one
+(every two of its groups; ``_g12`` the two objects without the background, ``_g13`` and
+``_g23`` an object and the background, as the benchmark names them) — 54 of its 120
+two-motion sequences are such subsets.
 
 Columns: misclassification of :func:`torchsfm.segment_motions` with the number of motions found by
 the method (``found``) and given (``given``), and of a baseline written with OpenCV: sequential
@@ -56,7 +60,24 @@ def sequences(data: Path) -> list[tuple[str, MotionTracks]]:
         found.append(("KT3DMoSeg", read_kt3dmoseg(folder)))
     for path in sorted((data / "adelaidermf_F").glob("*.mat")):
         found.append(("AdelaideRMF-F", read_adelaidermf(path)))
+    found += [("Hopkins155-2", pair) for name, sequence in found[:] if name == "Hopkins155"
+              for pair in two_motion_subsets(sequence)]
     return found
+
+
+def two_motion_subsets(sequence: MotionTracks) -> list[MotionTracks]:
+    """Every two groups of a three-motion sequence as a sequence of its own, named as Hopkins155
+    names them (its groups 1, 2 the objects — our labels 1, 2 — and 3 the background, our 0),
+    labels 0, 1 in their order; none for a two-motion sequence."""
+    if int(sequence.labels.max()) != 2:
+        return []
+    subsets = []
+    for groups, suffix in (((1, 2), "g12"), ((0, 1), "g13"), ((0, 2), "g23")):
+        kept = torch.isin(sequence.labels, torch.tensor(groups))
+        subsets.append(MotionTracks(name=f"{sequence.name}_{suffix}", tracks=sequence.tracks[:, kept],
+                                    labels=(sequence.labels[kept] == groups[1]).long(),
+                                    image_size=sequence.image_size, visible=sequence.visible[:, kept]))
+    return subsets
 
 
 def opencv_sequential_ransac(sequence: MotionTracks, motions: int) -> torch.Tensor | None:

@@ -748,6 +748,20 @@ def test_a_room_split_into_its_planes_is_one_scene(shared_data, seed):
     assert misclassification(found.labels, sequence.labels) <= 0.01
 
 
+def test_a_scene_rechosen_keeps_the_cuts_only_where_it_was_cut_out_of_the_first():
+    """:func:`rechosen_scene` on labels alone: a body cut out of the scene first chosen becomes the
+    scene and the two labels swap (the cuts stand); a motion exactly as the clustering gave it
+    becomes the scene and every other track goes back to its cluster, outliers staying out."""
+    from torchsfm.moving.segmentation import rechosen_scene
+
+    clusters = torch.tensor([0, 0, 0, 0, 1, 1, 2, -1])
+    settled = torch.tensor([0, 0, 3, 3, 1, 1, 2, -1])  # two tracks of the first scene cut out as body 3
+    torch.testing.assert_close(rechosen_scene(clusters, settled, 3), torch.tensor([3, 3, 0, 0, 1, 1, 2, -1]))
+    clusters = torch.tensor([0, 0, 0, 0, 1, 1, 1, -1])
+    settled = torch.tensor([0, 2, 2, -1, 1, 1, 1, -1])  # the first scene cut into body 2 and an outlier
+    torch.testing.assert_close(rechosen_scene(clusters, settled, 1), torch.tensor([1, 1, 1, -1, 0, 0, 0, -1]))
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_body_first_taken_for_the_scene_is_whole_again(shared_data, seed):
     """Hopkins155 cars10's two cars without the background (the two-motion sequence Hopkins155

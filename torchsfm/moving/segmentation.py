@@ -51,11 +51,12 @@ minimal-sample models:
    (:func:`beyond_infinity`: a car overtaking the camera is seen exactly like static points
    behind it, which every epipolar and projective test accepts).
    Where that leaves another motion both larger than the scene and covering more of the image,
-   that motion is made the scene and settled in turn, every other track back in the motion the
-   clustering gave it, outliers left out (:func:`rechosen_scene`: a scene first taken together
-   with a large object loses the background it did not explain; a moving body first taken for
-   the scene loses pieces that were bodies only against it; a scene that only lost coverage
-   stays).
+   that motion is made the scene and settled in turn (:func:`rechosen_scene`: a scene first
+   taken together with a large object loses the background it did not explain, and that part
+   becomes the scene; where the motion is one the clustering gave, a moving body was first taken
+   for the scene, and every other track goes back to the motion the clustering gave it,
+   outliers left out — the pieces cut from that body were bodies only against it; a scene that
+   only lost coverage stays).
    Given the number of motions, the settled partition is kept when it has that many. With
    fewer, the motion whose cut in two gains most is cut until it has that many
    (:func:`split_least_rigid`: two bodies taken for one); that partition or the pieces cut into
@@ -288,17 +289,26 @@ def scene_first(tracks: Tensor, visible: Tensor, clusters: Tensor) -> Tensor:
 
 
 def rechosen_scene(clusters: Tensor, settled: Tensor, scene: int) -> Tensor:
-    """(N,) labels with motion ``scene`` of the (N,) ``settled`` labels as the static scene (0)
-    and every other track back in its (N,) ``clusters`` motion (the labels before settling, 0
-    the scene first chosen), renumbered in their order; the tracks settling left unassigned
-    (-1: no rigid motion explains them) stay so. What settling did to the scene first chosen is
-    undone: a moving body taken for the scene (it covered more of the image) loses the pieces its
-    ill-fitting reconstruction does not explain, each refit on fewer tracks explaining less
-    (measured on Hopkins155 cars10's two cars without the background — the two-motion sequence
-    Hopkins155 itself forms from them: the larger car, 138 tracks, cut into three bodies of 62,
-    54 and 22 before the other car, 76 tracks, was made the scene; 35.5 % misclassified), and
-    those pieces were bodies only against that scene."""
-    labels = torch.where(settled == scene, 0, torch.where((clusters >= 0) & (settled >= 0), clusters + 1, -1))
+    """(N,) labels with motion ``scene`` of the (N,) ``settled`` labels as the static scene (0),
+    renumbered in their order, from the (N,) ``clusters`` labels before settling (0 the scene
+    first chosen).
+
+    A motion exactly as the clustering gave it (settling leaves the other motions whole or joins
+    them to the scene) was out-covered by a moving body taken for the scene: every other track
+    goes back to its motion in ``clusters``, the tracks settling left unassigned (-1: no rigid
+    motion explains them) staying so. Settling had cut that body where its ill-fitting reconstruction did not
+    explain it, each refit on fewer tracks explaining less (measured on Hopkins155 cars10's two
+    cars without the background — the two-motion sequence Hopkins155 itself forms from them: the
+    larger car, 138 tracks, cut into three bodies of 62, 54 and 22 before the other car, 76
+    tracks, was made the scene; 35.5 % misclassified), and those pieces were bodies only against
+    it. A body settling cut out of the scene first chosen (a scene taken together with a large
+    object loses the background it did not explain) shows those cuts were right: the two labels
+    only swap."""
+    new_scene = settled == scene
+    origin = clusters[new_scene][0]
+    if origin == 0 or not torch.equal(new_scene, clusters == origin):  # cut out of the scene first chosen
+        return torch.where(new_scene, 0, torch.where(settled == 0, scene, settled))
+    labels = torch.where(new_scene, 0, torch.where((clusters >= 0) & (settled >= 0), clusters + 1, -1))
     _, labels[labels >= 0] = labels[labels >= 0].unique(return_inverse=True)
     return labels
 

@@ -53,8 +53,8 @@ minimal-sample models:
    Where that leaves another motion both larger than the scene and covering more of the image,
    that motion is made the scene and settled in turn (:func:`rechosen_scene`: a scene first
    taken together with a large object loses the background it did not explain, and that part
-   becomes the scene; where the motion is one the clustering gave, a moving body was first taken
-   for the scene, and every other track goes back to the motion the clustering gave it,
+   becomes the scene; where the motion is exactly as the clustering gave it, a moving body was
+   first taken for the scene, and every other track goes back to the motion the clustering gave it,
    outliers left out — the pieces cut from that body were bodies only against it; a scene that
    only lost coverage stays).
    Given the number of motions, the settled partition is kept when it has that many. With
@@ -296,12 +296,12 @@ def rechosen_scene(clusters: Tensor, settled: Tensor, scene: int) -> Tensor:
     A motion exactly as the clustering gave it (settling leaves the other motions whole or joins
     them to the scene) was out-covered by a moving body taken for the scene: every other track
     goes back to its motion in ``clusters``, the tracks settling left unassigned (-1: no rigid
-    motion explains them) staying so. Settling had cut that body where its ill-fitting reconstruction did not
-    explain it, each refit on fewer tracks explaining less (measured on Hopkins155 cars10's two
-    cars without the background — the two-motion sequence Hopkins155 itself forms from them: the
-    larger car, 138 tracks, cut into three bodies of 62, 54 and 22 before the other car, 76
-    tracks, was made the scene; 35.5 % misclassified), and those pieces were bodies only against
-    it. A body settling cut out of the scene first chosen (a scene taken together with a large
+    motion explains them) staying so. Settling had cut that body where its ill-fitting
+    reconstruction did not explain it, each refit on fewer tracks explaining less (measured on
+    Hopkins155 cars10's two cars without the background — the two-motion sequence Hopkins155
+    itself forms from them: the larger car, 138 tracks, cut into three bodies of 62, 54 and 22
+    before the other car, 76 tracks, was made the scene; 35.5 % misclassified), and those pieces
+    were bodies only against it. A body settling cut out of the scene first chosen (a scene taken together with a large
     object loses the background it did not explain) shows those cuts were right: the two labels
     only swap."""
     new_scene = settled == scene

@@ -60,7 +60,7 @@ def sequences(data: Path) -> list[tuple[str, MotionTracks]]:
         found.append(("KT3DMoSeg", read_kt3dmoseg(folder)))
     for path in sorted((data / "adelaidermf_F").glob("*.mat")):
         found.append(("AdelaideRMF-F", read_adelaidermf(path)))
-    found += [("Hopkins155-2", pair) for name, sequence in found[:] if name == "Hopkins155"
+    found += [("Hopkins155-2", pair) for name, sequence in found if name == "Hopkins155"
               for pair in two_motion_subsets(sequence)]
     return found
 

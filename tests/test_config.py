@@ -82,7 +82,7 @@ def test_registries_offer_exactly_the_config_choices():
     from torchsfm.config import MotionModel, PoseMethod, Sampler, Scoring, TriangulationMethod
     from torchsfm.geometry.essential import POSE_CANDIDATES
     from torchsfm.geometry.triangulation import TRIANGULATION_METHODS
-    from torchsfm.moving.segmentation import MODELS
+    from torchsfm.moving.hypotheses import MODELS
     from torchsfm.robust.ransac import SCORINGS
     from torchsfm.robust.samplers import SAMPLERS
 

@@ -24,7 +24,7 @@ from torchsfm.errors import ConfigError
 # The choices of the settings that name a method: each is the single list of its names. The
 # registries that map a name to its implementation (``robust.samplers.SAMPLERS``,
 # ``robust.ransac.SCORINGS``, ``geometry.triangulation.TRIANGULATION_METHODS``,
-# ``geometry.essential.POSE_CANDIDATES``, ``moving.segmentation.MODELS``) are checked against them
+# ``geometry.essential.POSE_CANDIDATES``, ``moving.hypotheses.MODELS``) are checked against them
 # by a test; the other settings branch on their names where they are used.
 Sampler = Literal["bucketed", "uniform"]
 Scoring = Literal["inlier_count", "msac"]
@@ -626,7 +626,7 @@ class SegmentationConfig:
     moving bodies (or outliers, where no rigid motion explains them within the χ² bound of noise
     at ``scene_tolerance``) — a track is explained within the larger of ``scene_tolerance`` px (the
     tracker's noise floor) and the χ² bound at ``scene_significance``, a motion or piece by the
-    majority of its tracks (:func:`torchsfm.moving.segmentation.settle_scene`); the residual is
+    majority of its tracks (:func:`torchsfm.moving.scene.settle_scene`); the residual is
     the scene's projective reconstruction (at most ``scene_refinements`` camera / point alternations)
     when the scene has parallax beyond that floor, else one F per frame pair. With ``runs`` > 1
     all of this runs that many times on successive draws of the generator, and the partition that

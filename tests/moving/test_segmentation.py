@@ -157,7 +157,7 @@ def test_two_bodies_taken_for_one_are_cut_apart():
     (its parts fit one F per frame pair each far better than together) and its cut separates the
     boxes exactly (seed 3; a background half on one wall can gain more: seed 2 cuts it, see
     split_least_rigid)."""
-    from torchsfm.moving.segmentation import split_least_rigid
+    from torchsfm.moving.scene import split_least_rigid
 
     data = scene(3, 2)
     found = segment_motions(data.tracks, generator=torch.Generator().manual_seed(0))
@@ -173,7 +173,7 @@ def test_the_round_budget_is_shared_by_the_kinds_used(monkeypatch):
     """``segmentation.hypotheses`` per round, split evenly: 1333 each of F, affine and plane
     hypotheses on five frames; on two frames the plane kind is left out and F and affine get
     2000 each (the budget of the two-kind default before plane hypotheses joined it)."""
-    import torchsfm.moving.segmentation as segmentation
+    from torchsfm.moving import affinity
 
     counts: dict[str, list[int]] = {}
 
@@ -183,7 +183,7 @@ def test_the_round_budget_is_shared_by_the_kinds_used(monkeypatch):
             return fit(tracks, visible, count, *args)
         return wrapped
 
-    monkeypatch.setattr(segmentation, "MODELS", {name: recording(name, fit) for name, fit in segmentation.MODELS.items()})
+    monkeypatch.setattr(affinity, "MODELS", {name: recording(name, fit) for name, fit in affinity.MODELS.items()})
     config = SegmentationConfig(guided_rounds=0)
     segment_motions(scene(3, 1).tracks, config=config, generator=torch.Generator().manual_seed(0))
     assert counts == {"fundamental": [1333], "affine": [1333], "homography": [1333]}
@@ -344,7 +344,7 @@ def test_four_point_homography_is_exact_and_the_plane_model_segments():
     """The plane hypotheses' 4-point solver reproduces a homography to 1e-7 (float64, pixel
     coordinates of a few hundred; degenerate samples give NaN); plane hypotheses are used on
     three frames or more only, and with them segmentation still separates the scene's motions."""
-    from torchsfm.moving.segmentation import four_point_homography
+    from torchsfm.moving.hypotheses import four_point_homography
 
     generator = torch.Generator().manual_seed(0)
     H = torch.eye(3, dtype=torch.float64) + 0.1 * torch.randn(5, 3, 3, generator=generator, dtype=torch.float64)
@@ -384,7 +384,7 @@ def test_more_tracks_than_max_tracks_cluster_a_subset_and_fit_the_rest_to_the_mo
 
 def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     """A third of the sequence for full tracks; the median track span for short video tracks."""
-    from torchsfm.moving.segmentation import frame_pairs, median_span
+    from torchsfm.moving.pair_fits import frame_pairs, median_span
 
     full = torch.ones(10, 30, dtype=torch.bool)
     assert frame_pairs(full).tolist() == [[f, f + 3] for f in range(7)]
@@ -400,7 +400,7 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
 def test_preference_counts_and_similarity_are_exact():
     """The int8 products of 0/1 preference matrices equal float64 ones, so the Tanimoto
     similarity equals its definition |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
-    from torchsfm.moving.segmentation import binary_operand, binary_products, tanimoto_similarity
+    from torchsfm.moving.affinity import binary_operand, binary_products, tanimoto_similarity
 
     g = torch.Generator().manual_seed(3)
     defined = torch.rand(37, 301, generator=g) < 0.8
@@ -420,8 +420,8 @@ def test_track_residuals_do_not_depend_on_how_many_pairs_are_fitted_at_once(mode
     """The trimmed per-pair fits of three track sets over a 12-frame sequence with gaps, one pair
     per block against all pairs in one block: the same residuals (1e-9 px: the batched solvers'
     rounding may differ with the batch) and the same judged tracks."""
-    from torchsfm.moving import segmentation
-    from torchsfm.moving.segmentation import frame_pairs, track_residuals
+    from torchsfm.moving import pair_fits
+    from torchsfm.moving.pair_fits import frame_pairs, track_residuals
 
     g = torch.Generator().manual_seed(8)
     F, N = 12, 200
@@ -430,9 +430,9 @@ def test_track_residuals_do_not_depend_on_how_many_pairs_are_fitted_at_once(mode
     visible = torch.rand(F, N, generator=g) < 0.8
     members = torch.rand(3, N, generator=g) < 0.5
     pairs = frame_pairs(visible)
-    monkeypatch.setattr(segmentation, "BLOCK_ELEMENTS", 1)
+    monkeypatch.setattr(pair_fits, "BLOCK_ELEMENTS", 1)
     one, judged_one = track_residuals(tracks, visible, members, pairs, model)
-    monkeypatch.setattr(segmentation, "BLOCK_ELEMENTS", 10**9)
+    monkeypatch.setattr(pair_fits, "BLOCK_ELEMENTS", 10**9)
     whole, judged_whole = track_residuals(tracks, visible, members, pairs, model)
     assert pairs.shape[0] > 3 and bool(judged_whole.any())
     assert torch.equal(judged_one, judged_whole)
@@ -445,10 +445,10 @@ def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements
     against the definition written as loops: tracks with visibility gaps, hypotheses sharing
     frame pairs, one unusable sample and one model that is not finite; exact, scored in one
     block and in blocks of 2 hypotheses (200 // (3 pairs x 30 tracks))."""
-    from torchsfm.moving import segmentation
-    from torchsfm.moving.segmentation import worst_over_pairs
+    from torchsfm.moving import hypotheses
+    from torchsfm.moving.hypotheses import worst_over_pairs
 
-    monkeypatch.setattr(segmentation, "CHUNK_ELEMENTS", chunk_elements)
+    monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
 
     g = torch.Generator().manual_seed(5)
     F, N, H = 6, 30, 9
@@ -493,7 +493,7 @@ def test_distances_to_each_models_second_frame_equal_the_shared_frame_ones():
     the algebraic error is summed in another order); a point mapped to infinity gets +inf."""
     from torchsfm.geometry.fundamental import sampson_error_of_hypotheses
     from torchsfm.geometry.homography import transfer_error_of_hypotheses
-    from torchsfm.moving.segmentation import sampson_to_each, transfer_to_each
+    from torchsfm.moving.hypotheses import sampson_to_each, transfer_to_each
 
     g = torch.Generator().manual_seed(6)
     x1, x2 = 640 * torch.rand(2, 50, 2, generator=g, dtype=torch.float64)
@@ -513,7 +513,8 @@ def test_distances_to_each_models_second_frame_equal_the_shared_frame_ones():
 def test_a_piece_of_the_scene_that_its_motion_explains_rejoins_it():
     """The static scene split in two (a third of its tracks labelled as a motion of their own)
     and two moving objects: the split-off piece rejoins the scene, the objects stay apart."""
-    from torchsfm.moving.segmentation import frame_pairs, join_explained, scene_excess
+    from torchsfm.moving.pair_fits import frame_pairs
+    from torchsfm.moving.scene import join_explained, scene_excess
 
     data = scene(4, 2)
     labels = data.labels.clone()  # 0 scene, 1 and 2 objects, -1 outliers
@@ -530,7 +531,7 @@ def test_normalized_cut_is_exact_and_the_direct_cut_recovers_blocks():
     """Two pairs of nodes (links 1 inside a pair, 0.1 across one seam): the pairs' normalized
     cut is 2 × 0.1 / 2.1 exactly, less than any other split's; spectral k-means on the leading
     eigenvectors of three noisy blocks recovers them exactly."""
-    from torchsfm.moving.segmentation import leading_eigenvectors, normalized_cut, spectral_partition
+    from torchsfm.moving.clustering import leading_eigenvectors, normalized_cut, spectral_partition
 
     affinity = torch.tensor([[0, 1, 0, 0], [1, 0, 0.1, 0], [0, 0.1, 0, 1], [0, 0, 1, 0]], dtype=torch.float64)
     assert normalized_cut(affinity, torch.tensor([0, 0, 1, 1])) == pytest.approx(0.2 / 2.1, rel=1e-12)
@@ -549,10 +550,10 @@ def test_the_sparse_eigensolver_of_large_affinities_matches_the_dense_one(monkey
     track linked to 24 others, 5 % of the links across blocks. LOBPCG's 20 leading eigenvalues
     (its answer kept) equal the dense eigh's to 1e-10 and its eigenvectors span the same subspace (cosines 1 - 1e-10);
     where LOBPCG's residual is refused, the dense eigh decides, bit for bit."""
-    import torchsfm.moving.segmentation as segmentation
+    from torchsfm.moving import clustering
 
     g = torch.Generator().manual_seed(0)
-    N = segmentation.SPARSE_EIGEN_TRACKS + 100
+    N = clustering.SPARSE_EIGEN_TRACKS + 100
     block = torch.arange(N) * 4 // N
     partner = torch.randint(0, N, (N, 24), generator=g)
     same = block[partner] == block[:, None]
@@ -565,15 +566,15 @@ def test_the_sparse_eigensolver_of_large_affinities_matches_the_dense_one(monkey
     solved = []
     lobpcg = torch.lobpcg
     monkeypatch.setattr(torch, "lobpcg", lambda *args, **kwargs: solved.append(lobpcg(*args, **kwargs)) or solved[-1])
-    values, vectors = segmentation.leading_eigenvectors(affinity, 20)
+    values, vectors = clustering.leading_eigenvectors(affinity, 20)
     assert len(solved) == 1 and torch.equal(values, solved[0][0].sort(descending=True).values)  # LOBPCG's answer kept
     degree = affinity.sum(1).rsqrt()
     dense_values, dense_vectors = torch.linalg.eigh(affinity * degree[:, None] * degree[None])
     torch.testing.assert_close(values, dense_values.flip(0)[:20], rtol=0, atol=1e-10)
     cosines = torch.linalg.svdvals(vectors.T @ dense_vectors.flip(1)[:, :20])
     torch.testing.assert_close(cosines, torch.ones(20, dtype=torch.float64), rtol=0, atol=1e-10)
-    monkeypatch.setattr(segmentation, "EIGEN_RESIDUAL", 0.0)
-    fallback_values, fallback_vectors = segmentation.leading_eigenvectors(affinity, 20)
+    monkeypatch.setattr(clustering, "EIGEN_RESIDUAL", 0.0)
+    fallback_values, fallback_vectors = clustering.leading_eigenvectors(affinity, 20)
     assert torch.equal(fallback_values, dense_values.flip(0)[:20]) and torch.equal(fallback_vectors, dense_vectors.flip(1)[:, :20])
 
 
@@ -581,7 +582,7 @@ def test_a_piece_is_a_body_only_when_its_own_motion_explains_it_to_noise():
     """The scene and an object at 0.5 px noise are each explained by a rigid motion of their own
     within the χ² bound of 1 px noise; 40 tracks drawn at random in every frame (tracking
     errors) are not; a set of 5 tracks cannot be fitted."""
-    from torchsfm.moving.segmentation import noise_explained
+    from torchsfm.moving.scene import noise_explained
 
     data = scene(5, 1)
     tracks = data.tracks.clone()
@@ -603,7 +604,8 @@ def test_a_piece_is_a_body_only_when_its_own_motion_explains_it_to_noise():
 def test_a_body_seen_in_a_few_frames_is_judged_on_the_frames_it_spans():
     """A body leaving the view after 3 of 10 frames: the sequence's frame pairs (3 frames apart)
     never see it at both ends, its own pairs (2 apart) do, and its rigid motion explains it."""
-    from torchsfm.moving.segmentation import frame_pairs, noise_explained
+    from torchsfm.moving.pair_fits import frame_pairs
+    from torchsfm.moving.scene import noise_explained
 
     data = synthetic_moving_scene(1, num_frames=10, num_objects=1, object_points=60, noise=0.5)
     body = data.labels == 1
@@ -619,7 +621,7 @@ def test_the_scene_refitted_without_what_it_cut_cuts_every_body():
     motion in pieces of about 30 tracks: the scene's first fit, pulled by the boxes, explains
     one of them (its one cut left 30 % misclassified); refitted without the pieces it cut, it
     cuts every box, and each is a body of its own."""
-    from torchsfm.moving.segmentation import settle_scene
+    from torchsfm.moving.scene import settle_scene
 
     data = synthetic_moving_scene(0, num_frames=5, num_objects=3, object_points=120, noise=0.5,
                                   outlier_fraction=0.0, plane_share=0.0)
@@ -643,7 +645,8 @@ def test_a_background_half_whose_fit_explains_the_scene_joins_it(shared_data, cl
     bound (median excess measured 5.87 and 9.90), the half's own fit explains the scene, and
     :func:`join_explaining` joins it."""
     from torchsfm.io.datasets import read_kt3dmoseg
-    from torchsfm.moving.segmentation import frame_pairs, join_explaining, scene_excess
+    from torchsfm.moving.pair_fits import frame_pairs
+    from torchsfm.moving.scene import join_explaining, scene_excess
 
     sequence = read_kt3dmoseg(shared_data / "kt3dmoseg_dev" / f"{clip}_Tracks")
     tracks, visible, truth = sequence.tracks, sequence.visible, sequence.labels
@@ -667,7 +670,8 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     plane is degenerate and extrapolates 1.27 px (median) off the right half, beyond its 1 px
     bound; the wall's homographies explain that half (median excess measured 0.84) and not the
     moving box (19.4)."""
-    from torchsfm.moving.segmentation import frame_pairs, has_parallax, plane_residuals, scene_excess, track_residuals
+    from torchsfm.moving.pair_fits import frame_pairs, plane_residuals, track_residuals
+    from torchsfm.moving.scene import has_parallax, scene_excess
 
     data = synthetic_moving_scene(4, num_frames=5, num_objects=1, object_points=60, noise=0.5, outlier_fraction=0.0,
                                   plane_share=1.0)
@@ -700,7 +704,7 @@ def _wall_tracks(relief: float, noise: float, generator: torch.Generator) -> tor
 
 def _plane_and_epipolar(tracks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(N,) distances of all the (F, N, 2) tracks to their homographies and F fits, and the (N,) members."""
-    from torchsfm.moving.segmentation import epipolar_residuals, frame_pairs, plane_residuals
+    from torchsfm.moving.pair_fits import epipolar_residuals, frame_pairs, plane_residuals
 
     visible = torch.ones(tracks.shape[:2], dtype=torch.bool)
     members = torch.ones(tracks.shape[1], dtype=torch.bool)
@@ -712,7 +716,7 @@ def _plane_and_epipolar(tracks: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 def test_a_flat_wall_has_no_weak_parallax(noise):
     """A flat wall: noise alone puts its tracks about twice as far from its homographies as from
     its F fits (measured 2.09-2.11), and :func:`weak_parallax` says no."""
-    from torchsfm.moving.segmentation import weak_parallax
+    from torchsfm.moving.scene import weak_parallax
 
     plane, epipolar, members = _plane_and_epipolar(_wall_tracks(0.0, noise, torch.Generator().manual_seed(0)))
     assert 1.8 < float(plane.median() / epipolar.median()) < 2.5
@@ -723,7 +727,7 @@ def test_weak_parallax_is_parallax_beyond_the_tracks_own_noise():
     """A wall with 20 cm of relief at 0.1 px noise: 4.8 times as far from its homographies as from
     its F fits — parallax, although its distance to the homographies (0.46 px) is within the 1 px
     noise floor (:func:`has_parallax` says no)."""
-    from torchsfm.moving.segmentation import has_parallax, weak_parallax
+    from torchsfm.moving.scene import has_parallax, weak_parallax
 
     generator = torch.Generator().manual_seed(0)
     _wall_tracks(0.0, 0.1, generator)  # the draws of the flat wall first, as measured
@@ -752,7 +756,7 @@ def test_a_scene_rechosen_keeps_the_cuts_only_where_it_was_cut_out_of_the_first(
     """:func:`rechosen_scene` on labels alone: a body cut out of the scene first chosen becomes the
     scene and the two labels swap (the cuts stand); a motion exactly as the clustering gave it
     becomes the scene and every other track goes back to its cluster, outliers staying out."""
-    from torchsfm.moving.segmentation import rechosen_scene
+    from torchsfm.moving.scene import rechosen_scene
 
     clusters = torch.tensor([0, 0, 0, 0, 1, 1, 2, -1])
     settled = torch.tensor([0, 0, 3, 3, 1, 1, 2, -1])  # two tracks of the first scene cut out as body 3
@@ -784,7 +788,7 @@ def test_kmeans_stops_at_its_fixed_point_with_the_labels_of_every_iteration(monk
     """Five blobs of 2-D points, 10 restarts: k-means stops once every restart's labels repeat,
     well before the 30 iterations allowed, with exactly the labels of Lloyd's steps run to the
     end (written out here: the same draws, every iteration)."""
-    from torchsfm.moving.segmentation import kmeans
+    from torchsfm.moving.clustering import kmeans
 
     g = torch.Generator().manual_seed(3)
     centres = 10 * torch.randn(5, 2, generator=g, dtype=torch.float64)

@@ -234,7 +234,7 @@ def test_the_default_whole_track_decision_on_kitti_clips(shared_data, clip, unde
     0.9 % wrongly rejected, Seq005_Clip01 0.0 / 0.0 %, Seq059_Clip01 0.9 / 0.2 %, Seq095_Clip01
     1.0 / 0.3 %. Seq095's cars drive along the camera's direction, faster than it: the scene's
     projective reconstruction explains them within the noise (median excess 0.1–0.4), with points
-    behind the cameras. Before the scene's depth-order check (:func:`~torchsfm.moving.segmentation.beyond_infinity`)
+    behind the cameras. Before the scene's depth-order check (:func:`~torchsfm.moving.scene.beyond_infinity`)
     the scene kept them: 39.1 % undetected."""
     sequence = read_kt3dmoseg(shared_data / "kt3dmoseg_dev" / f"{clip}_Tracks")
     result = reject_moving_objects_in_tracks(sequence.tracks, sequence.visible, generator=torch.Generator().manual_seed(0))

@@ -32,7 +32,8 @@ from torch import Tensor
 from torchsfm.config import Config
 from torchsfm.errors import ShapeError, TorchSfmError
 from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects_in_triplets
-from torchsfm.moving.segmentation import MotionSegmentation, grid_coverage, segment_motions
+from torchsfm.moving.scene import grid_coverage
+from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group
 from torchsfm.moving.track_input import check_tracks
 

@@ -1,0 +1,134 @@
+"""Spectral clustering of the tracks' affinity (step 4 of :mod:`torchsfm.moving.segmentation`).
+
+The leading eigenvectors of the normalized affinity, batched k-means on them, the merges of an
+over-segmentation down to a number of motions (found before the largest drop of the merge links
+where not given), and the normalized cut that compares partitions.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchsfm.config import SegmentationConfig
+
+SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
+EIGEN_RESIDUAL = 1e-6  # largest LOBPCG residual accepted: it stops near 1e-8 (sqrt of float64 eps); a stalled run is far off
+
+
+def leading_eigenvectors(affinity: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """The ``count`` largest eigenvalues (descending) and eigenvectors (N, count) of the
+    normalized affinity D^-1/2 A D^-1/2.
+
+    From ``SPARSE_EIGEN_TRACKS`` tracks on, by LOBPCG on the sparse matrix (each row keeps about
+    2 × ``links`` entries; a fixed-seed start, so the result is reproducible), kept where every
+    pair's residual ‖M v − λ v‖ is at most ``EIGEN_RESIDUAL`` (M's norm is at most 1), else by the
+    dense ``eigh``. On a 3000-track video's affinity both give the eigenvalues to 1e-14 and the
+    subspace to 1e-13 (residuals near 1e-8), in 0.7 s instead of 3.4 s."""
+    degree = affinity.sum(1).clamp_min(torch.finfo(affinity.dtype).tiny)
+    scale = degree.rsqrt()
+    normalized = affinity * scale[:, None] * scale[None]
+    N = normalized.shape[0]
+    count = min(count, N)
+    if N >= SPARSE_EIGEN_TRACKS and 3 * count <= N:
+        start = torch.randn(N, count, generator=torch.Generator(normalized.device).manual_seed(0), dtype=normalized.dtype,
+                            device=normalized.device)
+        values, vectors = torch.lobpcg(normalized.to_sparse(), k=count, X=start, largest=True)
+        values, order = values.sort(descending=True)
+        vectors = vectors[:, order]
+        if float((normalized @ vectors - vectors * values).norm(dim=0).max()) <= EIGEN_RESIDUAL:
+            return values, vectors
+    values, vectors = torch.linalg.eigh(normalized)
+    return values.flip(0)[:count], vectors.flip(1)[:, :count]
+
+
+def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: torch.Generator) -> Tensor:
+    """Lloyd's k-means on (N, D) points with ``restarts`` random initializations run as one
+    batch, for ``iterations`` steps or until every restart's labels repeat (a fixed point: the
+    centres, and so every later step, would repeat too); the labels (N,) of the restart with the
+    smallest within-cluster sum of squares."""
+    N = points.shape[0]
+    start = torch.rand(restarts, N, generator=generator, device=points.device).argsort(1)[:, :k]
+    centres = points[start]  # (R, k, D)
+    previous = None
+    for _ in range(iterations):
+        labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)  # (R, N)
+        if previous is not None and torch.equal(labels, previous):
+            break
+        previous = labels
+        one_hot = torch.nn.functional.one_hot(labels, k).to(points.dtype)  # (R, N, k)
+        counts = one_hot.sum(1)  # (R, k)
+        sums = one_hot.transpose(1, 2) @ points  # (R, k, D)
+        centres = torch.where(counts[..., None] > 0, sums / counts[..., None].clamp_min(1), centres)
+    labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)
+    cost = (points[None] - centres.gather(1, labels[..., None].expand(-1, -1, points.shape[1]))).square().sum((1, 2))
+    return labels[int(cost.argmin())]
+
+
+def spectral_partition(vectors: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator) -> Tensor:
+    """(N,) labels 0..count-1: k-means (``config.restarts`` restarts) of the rows of the
+    ``count`` leading (N, >= count) eigenvectors of the normalized affinity, each row scaled to
+    unit length (Ng, Jordan & Weiss 2001)."""
+    embedding = vectors[:, :count]
+    embedding = embedding / embedding.norm(dim=1, keepdim=True).clamp_min(torch.finfo(embedding.dtype).tiny)
+    return kmeans(embedding, count, config.restarts, config.kmeans_iterations, generator)
+
+
+def merge_clusters(affinity: Tensor, labels: Tensor, count: int | None, config: SegmentationConfig) -> Tensor:
+    """Merge the clusters of an over-segmentation (N,) labels 0..K-1 down to ``count`` clusters.
+
+    Each step joins the two clusters most strongly linked relative to the smaller one's volume,
+    cut(A, B) / min(vol(A), vol(B)): the pieces of one motion are linked along their borders,
+    distinct motions hardly at all. Without ``count`` the merges run down to one cluster and the
+    number kept is the one before the largest relative drop of that link,
+    (s_c + floor) / (s_(c-1) + floor) over c = 2..``config.max_motions`` (s_c: the link of the
+    merge that leaves c clusters, ``config.link_floor`` the link counted as none); one cluster
+    if no drop reaches ``config.min_link_drop``. Returns labels 0..C-1, most tracks first.
+    """
+    K = int(labels.max()) + 1
+    one_hot = torch.nn.functional.one_hot(labels, K).to(affinity.dtype)  # (N, K)
+    links = one_hot.T @ affinity @ one_hot  # (K, K)
+    alive = torch.bincount(labels, minlength=K) > 0
+    tiny = torch.finfo(links.dtype).tiny
+    merges: list[tuple[int, int, float]] = []
+    while int(alive.sum()) > 1:
+        volume = links.sum(1)
+        score = links / torch.minimum(volume[:, None], volume[None]).clamp_min(tiny)
+        score = torch.where(alive[:, None] & alive[None], score, -1.0).fill_diagonal_(-1.0)
+        best = int(score.argmax())
+        a, b = divmod(best, K)
+        merges.append((a, b, float(score.view(-1)[best])))
+        links[a] += links[b]
+        links[:, a] += links[:, b]
+        links[b] = 0
+        links[:, b] = 0
+        alive[b] = False
+    start = len(merges) + 1  # clusters before any merge
+    if count is None:
+        link = {start - 1 - i: merge[2] for i, merge in enumerate(merges)}  # clusters left -> link
+        drops = {c: (link[c] + config.link_floor) / (link[c - 1] + config.link_floor)
+                 for c in range(2, min(config.max_motions, start - 1) + 1)}
+        count = max(drops, key=drops.get) if drops and max(drops.values()) >= config.min_link_drop else 1
+    groups = torch.arange(K, device=labels.device)
+    for a, b, _ in merges[:max(start - count, 0)]:
+        groups[groups == b] = a
+    merged = groups[labels]
+    return largest_first(merged)
+
+
+def largest_first(labels: Tensor) -> Tensor:
+    """(N,) labels >= 0 renumbered 0..C-1 by decreasing number of tracks."""
+    survivors, sizes = labels.unique(return_counts=True)
+    survivors = survivors[sizes.argsort(descending=True)]
+    renumber = torch.full((int(labels.max()) + 1,), -1, dtype=torch.long, device=labels.device)
+    renumber[survivors] = torch.arange(survivors.numel(), device=labels.device)
+    return renumber[labels]
+
+
+def normalized_cut(affinity: Tensor, labels: Tensor) -> float:
+    """Shi & Malik's normalized cut of a partition, sum over its clusters of cut(c, rest) /
+    vol(c): (n, n) affinity, (n,) labels 0..C-1 (every label used)."""
+    one_hot = torch.nn.functional.one_hot(labels).to(affinity.dtype)  # (n, C)
+    links = one_hot.T @ affinity @ one_hot  # (C, C)
+    volume = links.sum(1)
+    return float(((volume - links.diagonal()) / volume.clamp_min(torch.finfo(volume.dtype).tiny)).sum())

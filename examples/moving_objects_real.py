@@ -15,11 +15,12 @@ Methods (undetected = % of moving tracks kept, wrong = % of background tracks re
 * ``OpenCV RANSAC``: USAC_MAGSAC F (1 px, p = 0.99) on the pairs (1, 0), (1, 2), (0, 2) of the
   triplet (0, k, 2k), k = (F - 1) / 2 (``bench`` extra);
 * ``IMOR + RANSAC``: the thesis' cascade on that triplet;
-* ``true scene F 1px`` and ``true scene F 1.5px``: what the triplet allows where the background is
+* ``true scene F t`` and ``true scene F 1.5t``: what the triplet allows where the background is
   known — each pair's F fitted to the labelled background (least-trimmed squares,
   :func:`~torchsfm.moving.pair_fits.trimmed_pair_fits`) and a track kept where its Sampson distance
-  is within 1 px (the cascade's threshold) or 1.5 px in all three pairs: not a method (it reads
-  the labels), the ceiling of any cascade that tests the pairs' F;
+  is within the cascade's threshold t (``fundamental.ransac.inlier_threshold``, 1 px) or 1.5 t in
+  all three pairs: not a method (it reads the labels), the ceiling of any cascade that tests the
+  pairs' F;
 * whole tracks, :func:`torchsfm.reject_moving_objects_in_tracks` with ``track_method`` =
   ``triplets`` (votes of IMOR + RANSAC over every triplet (0, k, 2k)), ``rigid_groups``
   (projective rigid groups over all frames, static group chosen by the votes), ``both`` and
@@ -53,7 +54,7 @@ from imo_comparison import opencv_usac  # the OpenCV baseline of examples/imo_co
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NOT_TRANSLATING = {"cars2_07", "three-cars"}  # camera effectively static or background unreliable
 NON_RIGID = {"arm", "articulated", "dancing"}
-METHODS = ("OpenCV RANSAC", "IMOR + RANSAC", "true scene F 1px", "true scene F 1.5px", "triplets", "rigid_groups", "both", "segmentation")
+METHODS = ("OpenCV RANSAC", "IMOR + RANSAC", "true scene F t", "true scene F 1.5t", "triplets", "rigid_groups", "both", "segmentation")
 
 
 def translating_hopkins(data: Path) -> list[Path]:
@@ -101,8 +102,9 @@ def evaluate(sequence: MotionTracks, config: Config, seed: int = 0
     cascade = reject_moving_objects(*triplet, config=config, generator=torch.Generator().manual_seed(seed))
     rows["IMOR + RANSAC"] = figures(cascade.background_mask, labels[seen])
     distance = true_scene_distances(triplet, labels[seen] == 0)
-    rows["true scene F 1px"] = figures(distance <= 1.0, labels[seen])
-    rows["true scene F 1.5px"] = figures(distance <= 1.5, labels[seen])
+    threshold = config.fundamental.ransac.inlier_threshold
+    rows["true scene F t"] = figures(distance <= threshold, labels[seen])
+    rows["true scene F 1.5t"] = figures(distance <= 1.5 * threshold, labels[seen])
     start = time.perf_counter()
     result = reject_moving_objects_in_tracks(tracks, visible, config=config, generator=torch.Generator().manual_seed(seed))
     seconds = time.perf_counter() - start

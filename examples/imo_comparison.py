@@ -35,7 +35,7 @@ from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import camera_errors
 from torchsfm.io.datasets import read_hopkins155, read_strecha
 from torchsfm.images import read_image
-from torchsfm.moving.imor import epipolar_consistency, reject_moving_objects
+from torchsfm.moving.imor import CASCADE_PAIRS, epipolar_consistency, reject_moving_objects
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.testing import (insert_moving_patch, inserted_object_triplet, inside_boxes, rejection_figures,
                               synthetic_moving_scene)
@@ -66,7 +66,7 @@ def opencv_usac(tracks: torch.Tensor) -> torch.Tensor | None:
     except ImportError:
         return None
     keep = torch.ones(tracks.shape[1], dtype=torch.bool)
-    for a, b in ((1, 0), (1, 2), (0, 2)):
+    for a, b in CASCADE_PAIRS:
         _, mask = cv2.findFundamentalMat(tracks[a].numpy(), tracks[b].numpy(), cv2.USAC_MAGSAC, 1.0, 0.99, 10000)
         keep &= torch.from_numpy(mask.ravel().astype(bool)) if mask is not None else torch.zeros_like(keep)
     return keep

@@ -45,7 +45,7 @@ import torch
 
 from torchsfm.config import Config, with_overrides
 from torchsfm.io.datasets import MotionTracks, read_hopkins155, read_kt3dmoseg
-from torchsfm.moving.imor import reject_moving_objects
+from torchsfm.moving.imor import CASCADE_PAIRS, reject_moving_objects
 from torchsfm.moving.pair_fits import trimmed_pair_fits
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 
@@ -78,10 +78,11 @@ def figures(background: torch.Tensor, labels: torch.Tensor) -> tuple[int, int, i
 
 
 def true_scene_distances(triplet: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """(N,) every track's largest Sampson distance (px) over the pairs (1, 0), (1, 2), (0, 2) of a
-    (3, N, 2) triplet to the F fitted to the (N,) bool labelled background of each pair."""
-    first, second = triplet[[1, 1, 0]].double(), triplet[[0, 2, 2]].double()
-    members = background.expand(3, -1)
+    """(N,) every track's largest Sampson distance (px) over the cascade's frame pairs
+    (``CASCADE_PAIRS``) of a (3, N, 2) triplet to the F fitted to the (N,) bool labelled
+    background of each pair."""
+    first, second = (triplet[[pair[k] for pair in CASCADE_PAIRS]].double() for k in (0, 1))
+    members = background.expand(len(CASCADE_PAIRS), -1)
     _, distance, _ = trimmed_pair_fits(first, second, members, members.double(), "fundamental")
     return distance.amax(0)
 

@@ -42,6 +42,7 @@ from torchsfm.robust.ragged import pad_rows
 from torchsfm.validation import check_finite, check_floating, check_shapes
 
 MIN_VECTORS = 12  # the quadratic flow needs 4 points; RANSAC on it and on F needs clearly more
+CASCADE_PAIRS = ((1, 0), (1, 2), (0, 2))  # the frame pairs whose F the cascade's RANSAC tests, reference first
 
 
 @dataclass
@@ -119,8 +120,8 @@ def _consistency(triplets: list[Tensor], config: Config, generator: torch.Genera
     (one triplet unpadded: the draws of a call of its own); per triplet its mask and samples
     drawn, or why RANSAC found no F for one of its pairs."""
     config = dataclasses.replace(config, fundamental=dataclasses.replace(config.fundamental, refine=False))
-    first = [frames[i] for frames in triplets for i in (1, 1, 0)]
-    second = [frames[j] for frames in triplets for j in (0, 2, 2)]
+    first = [frames[i] for frames in triplets for i, _ in CASCADE_PAIRS]
+    second = [frames[j] for frames in triplets for _, j in CASCADE_PAIRS]
     if len(triplets) == 1:
         try:
             found = estimate_fundamental(torch.stack(first), torch.stack(second), config=config, generator=generator)

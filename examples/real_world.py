@@ -5,7 +5,7 @@ shuffled order (a fixed seeded permutation) and with every third view only (wide
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61
 degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
 size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); fountain-P11 with views
-3 and 7 at half size (two cameras: the same scene at two scales), at four times the size (3072x2048: beyond
+3 and 7 at half size (two cameras: the same scene at two scales), at a third of the size (``fountain_third``), at four times the size (3072x2048: beyond
 ``reconstruction.max_image_size``, reduced while the others are not) and with views 3 and 7 zoomed in twice (their
 centres at full size: one image size, two focal lengths; each view its own K) and with views 3 and 7 tilted by 30
 degrees (turned about the optical axis); the KITTI
@@ -142,6 +142,7 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "herzjesu_double": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_double", scale=2.0),
         "herzjesu_portrait": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_portrait", turned=(0, 4)),
         "fountain_mixed": lambda: transformed(fountain, work / "inputs" / "fountain_mixed", scale=0.5, scaled=(3, 7)),
+        "fountain_third": lambda: transformed(fountain, work / "inputs" / "fountain_third", scale=1 / 3, scaled=(3, 7)),
         "fountain_large": lambda: transformed(fountain, work / "inputs" / "fountain_large", scale=4.0, scaled=(3, 7)),
         "fountain_zoomed": lambda: transformed(fountain, work / "inputs" / "fountain_zoomed", zoomed=(3, 7)),
         "fountain_tilted": lambda: transformed(fountain, work / "inputs" / "fountain_tilted", tilted=(3, 7)),

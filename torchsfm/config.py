@@ -447,7 +447,11 @@ class ReconstructionConfig:
     only where the data determine it; alternatives separated by ``|`` are each refined from the
     same start and the one with the smallest geometric AIC kept (default: a free principal point,
     or one radial coefficient with the principal point at the image centre;
-    :func:`torchsfm.sfm.mapping.refine_intrinsics`).
+    :func:`torchsfm.sfm.mapping.refine_intrinsics`). Last, with ``observations_by_projection``,
+    every registered view is searched around the projections of the points it does not observe
+    but its verified partners do (the NCC of a partner's patch warped to it;
+    :mod:`torchsfm.sfm.projection_search`), what is found joins the tracks, and the model is
+    adjusted once more.
     """
 
     min_pair_inliers: int = 30
@@ -463,6 +467,7 @@ class ReconstructionConfig:
     bundle_every: int = 0
     local_bundle_window: int = 0
     retriangulations: int = 1
+    observations_by_projection: bool = True
     bundle_loss: Loss = "cauchy"
     refined_intrinsics: str = "f,cx,cy|f,k1"
 

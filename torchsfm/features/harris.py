@@ -90,14 +90,21 @@ def biquadric_peaks(response: Tensor, pixels: Tensor, window: int) -> tuple[Tens
     half = window // 2
     patches = functional.unfold(response[None], window, padding=half)[0]  # (N², H * W)
     W = response.shape[-1]
-    values = patches[:, pixels[:, 1] * W + pixels[:, 0]].T.double()  # (K, N²)
+    offsets, proper = biquadric_offsets(patches[:, pixels[:, 1] * W + pixels[:, 0]].T.double(), window)
+    return offsets.to(response.dtype), proper
+
+
+def biquadric_offsets(values: Tensor, window: int) -> tuple[Tensor, Tensor]:
+    """The maxima of (K, N²) samples on the N×N offsets around their centres (row-major) by the
+    biquadric fit of Appendix B: offsets (K, 2) (x, y) from the centre (eq. B.6) and a (K,)
+    bool mask of fits that have a proper maximum inside the support; other offsets are 0."""
     K1, K2, K3, K4, K5, _ = (values @ _biquadric_solver(window, values.dtype, values.device).T).unbind(-1)
     determinant = 4 * K1 * K2 - K3 * K3
     x0 = (K3 * K5 - 2 * K2 * K4) / determinant
     y0 = (K3 * K4 - 2 * K1 * K5) / determinant
     offsets = torch.stack([x0, y0], dim=-1)
     proper = (determinant > 0) & (K1 < 0) & (offsets.abs() <= 0.5 * window).all(-1) & torch.isfinite(offsets).all(-1)
-    return torch.where(proper[:, None], offsets, 0.0).to(response.dtype), proper
+    return torch.where(proper[:, None], offsets, 0.0), proper
 
 
 def _select(scores: Tensor, width: int, height: int, config: HarrisConfig) -> Tensor:

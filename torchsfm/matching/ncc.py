@@ -47,6 +47,12 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int, warp: Tensor 
     Returns:
         (K, (2n + 1)²) patches; a constant patch becomes all zeros (it correlates with nothing).
     """
+    return zero_mean_unit_norm(sample_patches(image, points, half_size, warp))
+
+
+def sample_patches(image: Tensor, points: Tensor, half_size: int, warp: Tensor | None = None) -> Tensor:
+    """The bilinear samples (K, (2n + 1)²), row-major, of the (1, H, W) image on the square grid
+    of :func:`extract_patches` (n = ``half_size``) around each of the (K, 2) points, as they are."""
     H, W = image.shape[-2:]
     offsets = torch.arange(-half_size, half_size + 1, dtype=points.dtype, device=points.device)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
@@ -54,9 +60,8 @@ def extract_patches(image: Tensor, points: Tensor, half_size: int, warp: Tensor 
     steps = steps[None] if warp is None else steps @ warp.to(points.dtype).transpose(1, 2)  # (1 or K, P, 2)
     grid = points[:, None, :] + steps  # (K, P, 2)
     normalized = torch.stack([2 * grid[..., 0] / (W - 1) - 1, 2 * grid[..., 1] / (H - 1) - 1], dim=-1)
-    samples = functional.grid_sample(image[None].to(points.dtype), normalized[None], mode="bilinear",
-                                     padding_mode="border", align_corners=True)[0, 0]  # (K, P)
-    return zero_mean_unit_norm(samples)
+    return functional.grid_sample(image[None].to(points.dtype), normalized[None], mode="bilinear",
+                                  padding_mode="border", align_corners=True)[0, 0]  # (K, P)
 
 
 def zero_mean_unit_norm(patches: Tensor) -> Tensor:

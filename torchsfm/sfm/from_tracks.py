@@ -218,7 +218,7 @@ class ReconstructObjects(ConfiguredStage):
     body's colour of :data:`~torchsfm.visualization.MOTION_COLOURS`). Fills
     ``reconstruction.objects`` (views by the state's indices) and ``segmented_tracks``."""
 
-    SECTIONS = ("moving_objects", "reconstruction", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose",
+    SECTIONS = ("moving_objects", "reconstruction", "matching", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose",
                 "fundamental")
 
     def forward(self, state: ViewSet) -> ViewSet:

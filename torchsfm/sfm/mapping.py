@@ -23,6 +23,7 @@ from torchsfm.robust.ragged import pad_rows
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.estimators.planar_pose import PlanarPose, choose_by_normal, planar_poses
+from torchsfm.sfm.projection_search import observations_by_projection
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 from torchsfm.numerics import floor_tiny
@@ -684,8 +685,10 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     best one's count, resected together (:func:`resect_views`) and registered most first (a view
     that fails is retried after the next registration; when no view sees enough points, one with
     a verified pair into the model is posed from it, :func:`pose_from_pair`) — then bundle adjustment,
-    retriangulation, outlier removal and, when K was estimated, its refinement. Returns the
-    model and, for every allowed view left out, the reason."""
+    retriangulation, outlier removal and, when K was estimated, its refinement; last the
+    observations its views miss, found by projection among verified partners
+    (:func:`~torchsfm.sfm.projection_search.observations_by_projection`), and one more
+    adjustment. Returns the model and, for every allowed view left out, the reason."""
     tracks, V = state.tracks, len(state.corners)
     timings = state.timings
 
@@ -783,6 +786,14 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     timed("bundle adjustment", lambda: bundle(model, config, first))
     if state.estimate_focal:
         state.report(timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first)))
+    if config.reconstruction.observations_by_projection and state.greys:  # with the final cameras and intrinsics
+        linked = torch.zeros(V, V, dtype=torch.bool)
+        ends = torch.tensor(list(pairs), dtype=torch.long).reshape(-1, 2).T
+        linked[ends[0], ends[1]] = linked[ends[1], ends[0]] = True
+        added = timed("observations by projection", lambda: observations_by_projection(model, state.greys, state.distortion, linked, config))
+        state.report(f"{added} observations of the model's points found by projection")
+        if added:
+            timed("bundle adjustment", lambda: bundle(model, config, first))
     return model, unregistered
 
 

@@ -364,9 +364,10 @@ def _standing(model: Reconstruction) -> tuple[int, int, int]:
 
 class MapIncrementally(ConfiguredStage):
     """Initial pair, resection and triangulation of every next view, bundle adjustment (and, when
-    K was estimated, its refinement): fills ``reconstruction``."""
+    K was estimated, its refinement), then the observations found by projection and one more
+    adjustment: fills ``reconstruction``."""
 
-    SECTIONS = ("reconstruction", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose", "fundamental")
+    SECTIONS = ("reconstruction", "matching", "resection", "lm", "triangulation", "bundle_adjustment", "relative_pose", "fundamental")
 
     def forward(self, state: ViewSet) -> ViewSet:
         state.reconstruction = map_incrementally(state, self.config)

@@ -104,6 +104,17 @@ def test_a_view_of_another_scene_yields_no_observations():
     assert observations_by_projection(model, greys, distortion, LINKED, Config()) <= 2
 
 
+def test_masked_pixels_are_not_searched():
+    """A mask keeps the search off its pixels as it keeps the detector: the left half of view 2
+    masked, every point found there lies in the right half (and some are found)."""
+    model, greys, distortion, _, _ = plane_scene("full")
+    mask = torch.ones(240, 320, dtype=torch.bool)
+    mask[:, :160] = False
+    added = observations_by_projection(model, greys, distortion, LINKED, Config(), masks=[None, None, mask])
+    found = model.raw_pixels[model.tracks.view == 2]
+    assert added > 0 and bool((found[:, 0] >= 159.5).all()), found
+
+
 def test_a_radial_distortion_the_model_estimated_is_looked_through():
     """Without K the model may carry an estimated k1 (its pixels undistorted by it, its
     ``observed`` pixels as detected): view 2's image seen through k1 = -0.05 is searched as

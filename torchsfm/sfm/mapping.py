@@ -790,7 +790,8 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         linked = torch.zeros(V, V, dtype=torch.bool)
         ends = torch.tensor(list(pairs), dtype=torch.long).reshape(-1, 2).T
         linked[ends[0], ends[1]] = linked[ends[1], ends[0]] = True
-        added = timed("observations by projection", lambda: observations_by_projection(model, state.greys, state.distortion, linked, config))
+        added = timed("observations by projection",
+                      lambda: observations_by_projection(model, state.greys, state.distortion, linked, config, state.masks))
         state.report(f"{added} observations of the model's points found by projection")
         if added:
             timed("bundle adjustment", lambda: bundle(model, config, first))

@@ -26,7 +26,7 @@ from torch import Tensor
 from torchsfm.camera import Camera, distort_points, undistort_points
 from torchsfm.config import Config
 from torchsfm.features.harris import biquadric_offsets
-from torchsfm.images import to_unit_float
+from torchsfm.images import inside_mask, to_unit_float
 from torchsfm.matching.ncc import extract_patches, sample_patches
 from torchsfm.sfm.tracks import Tracks
 
@@ -36,22 +36,26 @@ if TYPE_CHECKING:  # the mapper's state type only: mapping.py calls this module
 SEARCH_CHUNK = 1024  # candidate points per batched search: (chunk, offsets, patch) samples, 25 MB of float64
 
 
-def observations_by_projection(model: MapperState, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config) -> int:
+def observations_by_projection(model: MapperState, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config,
+                               masks: list[Tensor | None] | None = None) -> int:
     """Add to the ``model`` the observations of its
     points that its registered views miss, found by projection (module docstring); returns how
     many. ``greys``: per view the (1, H_v, W_v) grey image the corners were detected on;
     ``distortion``: (V, 2) the views' known radial coefficients (the corners undistorted by them);
     ``linked``: (V, V) bool, the view pairs whose matches were verified — a view is searched for
     the points its linked views observe (their images overlap at a scale and angle the matcher
-    could bridge; a video's distant frames are not searched for each other's points). Where the
-    model has estimated a radial distortion (``model.radial``), the search looks through it too."""
+    could bridge; a video's distant frames are not searched for each other's points); ``masks``:
+    per view the (H_v, W_v) bool mask of where features may be found (None: everywhere), as the
+    detector keeps to. Where the model has estimated a radial distortion (``model.radial``), the
+    search looks through it too."""
     errors = model.observation_errors()
     inlier = errors < config.reconstruction.max_reprojection_error
     sources = LowPassedImages(greys)
     lenses = _lenses(model, distortion)
     found_views, found_tracks, found_raw = [], [], []
     for view in torch.nonzero(model.registered).flatten().tolist():
-        tracks, raw = _search_view(model, sources, lenses, config, view, inlier & linked[view][model.tracks.view])
+        mask = masks[view] if masks is not None else None
+        tracks, raw = _search_view(model, sources, lenses, mask, config, view, inlier & linked[view][model.tracks.view])
         found_views.append(torch.full_like(tracks, view))
         found_tracks.append(tracks)
         found_raw.append(raw)
@@ -90,10 +94,11 @@ def _through(lens: Tensor | None, points: Tensor, K: Tensor, view: Tensor | int,
     return mapping(points[:, None], K, lens[view])[:, 0]
 
 
-def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Tensor | None, Tensor | None], config: Config,
-                 view: int, usable: Tensor) -> tuple[Tensor, Tensor]:
+def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Tensor | None, Tensor | None], mask: Tensor | None,
+                 config: Config, view: int, usable: Tensor) -> tuple[Tensor, Tensor]:
     """The tracks (M,) whose points ``view`` is found to see and where (M, 2), as detected, each
-    searched with the patch of one of its ``usable`` (T,) observations."""
+    searched with the patch of one of its ``usable`` (T,) observations, where the view's ``mask``
+    (or None) keeps."""
     half, radius = config.matching.patch_half_size, math.ceil(config.reconstruction.max_reprojection_error)
     image = sources.at(view, 1.0)
     height, width = image.shape
@@ -127,6 +132,7 @@ def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Ten
     peaks = [_ncc_peaks(image, projected[chunk], patches[chunk], half, radius, config.matching.ncc_threshold)
              for chunk in torch.arange(candidates.numel()).split(SEARCH_CHUNK)]
     positions, found = torch.cat([position for position, _ in peaks]), torch.cat([found for _, found in peaks])
+    found &= inside_mask(positions, mask)
     return candidates[found], positions[found]
 
 

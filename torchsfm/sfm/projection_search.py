@@ -38,16 +38,20 @@ SEARCH_CHUNK = 1024  # candidate points per batched search: (chunk, offsets, pat
 
 def observations_by_projection(model: MapperState, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config,
                                masks: list[Tensor | None] | None = None) -> int:
-    """Add to the ``model`` the observations of its
-    points that its registered views miss, found by projection (module docstring); returns how
-    many. ``greys``: per view the (1, H_v, W_v) grey image the corners were detected on;
-    ``distortion``: (V, 2) the views' known radial coefficients (the corners undistorted by them);
-    ``linked``: (V, V) bool, the view pairs whose matches were verified — a view is searched for
-    the points its linked views observe (their images overlap at a scale and angle the matcher
-    could bridge; a video's distant frames are not searched for each other's points); ``masks``:
-    per view the (H_v, W_v) bool mask of where features may be found (None: everywhere), as the
-    detector keeps to. Where the model has estimated a radial distortion (``model.radial``), the
-    search looks through it too."""
+    """Add to the ``model`` the observations of its points that its registered views miss, found
+    by projection (module docstring); returns how many.
+
+    Args:
+        greys: per view the (1, H_v, W_v) grey image the corners were detected on.
+        distortion: (V, 2) the views' known radial coefficients (the corners undistorted by them).
+        linked: (V, V) bool, the view pairs whose matches were verified: a view is searched for
+            the points its linked views observe (their images overlap at a scale and angle the
+            matcher could bridge; a video's distant frames are not searched for each other's points).
+        masks: per view the (H_v, W_v) bool mask of where features may be found (None:
+            everywhere), kept to as the detector keeps to it.
+
+    Where the model has estimated a radial distortion (``model.radial``), the search looks
+    through it too."""
     errors = model.observation_errors()
     inlier = errors < config.reconstruction.max_reprojection_error
     sources = LowPassedImages(greys)

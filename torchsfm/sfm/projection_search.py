@@ -23,7 +23,7 @@ import torch.nn.functional as functional
 from kornia.filters import gaussian_blur2d
 from torch import Tensor
 
-from torchsfm.camera import Camera, distort_points, undistort_points
+from torchsfm.camera import Camera, distort_points, to_homogeneous, undistort_points
 from torchsfm.config import Config
 from torchsfm.features.harris import biquadric_offsets
 from torchsfm.images import inside_mask, to_unit_float
@@ -119,9 +119,9 @@ def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Ten
     margin = half + radius + 1
     inside = (depth > 0) & (projected >= margin).all(-1) & (projected[:, 0] <= width - 1 - margin) & (projected[:, 1] <= height - 1 - margin)
     reference = _nearest_observations(model, candidates[inside], view, usable)
-    usable = torch.zeros_like(inside)
-    usable[inside] = reference >= 0
-    candidates, X, undistorted, projected, reference = (candidates[usable], X[usable], undistorted[usable], projected[usable],
+    kept = torch.zeros_like(inside)
+    kept[inside] = reference >= 0
+    candidates, X, undistorted, projected, reference = (candidates[kept], X[kept], undistorted[kept], projected[kept],
                                                         reference[reference >= 0])
     if not candidates.numel():
         return candidates, projected
@@ -171,7 +171,7 @@ def _plane_warps(model: MapperState, X: Tensor, pixels: Tensor, view: int, partn
     inverse_K = torch.linalg.inv(model.K[view])
 
     def to_partner(x: Tensor) -> Tensor:
-        ray = (torch.cat([x, torch.ones_like(x[:, :1])], -1) @ inverse_K.T) @ model.R[view]  # world directions
+        ray = (to_homogeneous(x) @ inverse_K.T) @ model.R[view]  # world directions
         along = ((X - centres[view]) * normal).sum(-1) / (ray * normal).sum(-1)
         on_plane = centres[view] + along[:, None] * ray
         return camera.project(on_plane[:, None])[:, 0]

@@ -19,7 +19,7 @@ import torch
 from torchsfm.config import Config
 from torchsfm.io.datasets import read_strecha
 from torchsfm.images import read_image, to_grey
-from torchsfm.matching.ncc import extract_patches, ncc_candidates
+from torchsfm.matching.ncc import extract_patches, ncc_table
 from torchsfm.sfm.two_view import TwoViewReconstruction
 
 from ncc_vs_strength import DEFAULT_DATA
@@ -53,8 +53,8 @@ def main() -> None:
     print(f"fountain-P11 {i}-{j}: NCC of 8 true matches' patches (columns: image {i}, rows: image {j}; diagonal = true match)")
     for row in chosen:
         print(" ".join(f"{similarity[row, column]:7.4f}" + ("*" if row == column else " ") for column in chosen))
-    candidates = ncc_candidates(grey1, grey2, x1, x2, config.matching)
-    ncc = candidates.ncc  # (M, M) within the disc
+    disc = torch.cdist(x1, x2) < config.matching.search_radius
+    ncc = torch.where(disc, ncc_table(grey1, grey2, x1, x2, half), float("-inf"))  # (M, M) within the disc
     true_score = torch.diagonal(ncc)
     wrong = ncc.clone()
     wrong.fill_diagonal_(float("-inf"))

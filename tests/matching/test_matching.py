@@ -4,7 +4,7 @@ from torch.testing import assert_close
 
 from torchsfm.config import MatchingConfig
 from torchsfm.matching.matcher import PutativeMatcher, match_corners
-from torchsfm.matching.ncc import CandidateMatches, extract_patches, ncc_candidates
+from torchsfm.matching.ncc import CandidateMatches, extract_patches, ncc_candidates, ncc_table, select_candidates
 from torchsfm.matching.strength import relaxation, strength_measure
 
 
@@ -28,7 +28,9 @@ def test_ncc_of_an_image_with_itself_finds_every_corner():
     image = _textured()
     points = torch.rand(50, 2, generator=torch.Generator().manual_seed(1)) * torch.tensor([100.0, 70.0]) + 12
     candidates = ncc_candidates(image, image, points, points, MatchingConfig(search_radius=30, ncc_threshold=0.5))
-    assert_close(torch.diagonal(candidates.ncc), torch.ones(50), rtol=0, atol=1e-5)
+    diagonal = candidates.index1 == candidates.index2
+    assert torch.equal(candidates.index1[diagonal], torch.arange(50))
+    assert_close(candidates.score[diagonal], torch.ones(50), rtol=0, atol=1e-5)
     distances = (points[candidates.index1] - points[candidates.index2]).norm(dim=-1)
     assert (distances < 30).all() and (candidates.score > 0.5).all()
     matches = match_corners(image, image, points, points, MatchingConfig(search_radius=30))
@@ -50,15 +52,37 @@ def _synthetic_candidates(seed=0, n=60):
     keep[n:] = index2[n:] != index1[n:]
     score = torch.cat([0.9 + 0.05 * torch.rand(n, generator=generator, dtype=torch.float64),
                        0.85 + 0.1 * torch.rand(2 * n, generator=generator, dtype=torch.float64)])
-    candidates = CandidateMatches(index1=index1[keep], index2=index2[keep], score=score[keep], ncc=torch.empty(0))
+    candidates = CandidateMatches(index1=index1[keep], index2=index2[keep], score=score[keep])
     return points1, points2, candidates, n
+
+
+@pytest.mark.parametrize("size", [(120, 90), (90, 160)])  # strips along x, along y
+def test_candidates_in_strips_are_those_of_the_whole_table(size):
+    """The strip-blocked products give exactly the candidates (and scores) that the whole NCC
+    table within the disc gives, row-major, with disc centres off the corners (a prediction)."""
+    generator = torch.Generator().manual_seed(4)
+    width, height = size
+    image1 = _textured(size=(height + 24, width + 24))
+    image2 = torch.roll(image1, shifts=(2, 3), dims=(1, 2))
+    points1 = torch.rand(300, 2, generator=generator) * torch.tensor([width, height], dtype=torch.float32) + 12
+    points2 = torch.rand(280, 2, generator=generator) * torch.tensor([width, height], dtype=torch.float32) + 12
+    centres = points1 + torch.randn(300, 2, generator=generator) * 5
+    config = MatchingConfig(search_radius=25, ncc_threshold=0.3)
+    candidates = ncc_candidates(image1, image2, points1, points2, config, predicted1=centres)
+    reference = select_candidates(ncc_table(image1, image2, points1, points2, config.patch_half_size),
+                                  torch.cdist(centres, points2) < config.search_radius, config.ncc_threshold)
+    assert candidates.index1.numel() > 100
+    assert torch.equal(candidates.index1, reference.index1) and torch.equal(candidates.index2, reference.index2)
+    assert_close(candidates.score, reference.score, rtol=0, atol=1e-6)
+    none = ncc_candidates(image1, image2, points1[:0], points2, config)
+    assert none.index1.numel() == 0 and none.score.numel() == 0
 
 
 def test_strength_measure_is_symmetric_in_the_two_images():
     points1, points2, candidates, _ = _synthetic_candidates()
     config = MatchingConfig(neighbourhood_radius=80)
     forward = strength_measure(points1, points2, candidates, config)
-    swapped = CandidateMatches(index1=candidates.index2, index2=candidates.index1, score=candidates.score, ncc=torch.empty(0))
+    swapped = CandidateMatches(index1=candidates.index2, index2=candidates.index1, score=candidates.score)
     backward = strength_measure(points2, points1, swapped, config)
     assert_close(forward, backward, rtol=1e-12, atol=1e-12)
 
@@ -72,7 +96,7 @@ def test_strength_measure_in_float32_agrees_with_float64_far_from_the_image_orig
     points2 = points2 + 0.05 * torch.randn(points2.shape, generator=generator, dtype=torch.float64)
     config = MatchingConfig(neighbourhood_radius=80)
     reference = strength_measure(points1, points2, candidates, config)
-    single = CandidateMatches(index1=candidates.index1, index2=candidates.index2, score=candidates.score.float(), ncc=torch.empty(0))
+    single = CandidateMatches(index1=candidates.index1, index2=candidates.index2, score=candidates.score.float())
     assert_close(strength_measure(points1.float(), points2.float(), single, config), reference.float(), rtol=1e-4, atol=1e-6)
 
 

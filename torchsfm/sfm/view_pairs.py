@@ -29,6 +29,7 @@ from torchsfm.robust.ransac import ransac
 from torchsfm.sfm.pairs import pairs_to_match
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.pipeline import Progress
+from torchsfm.threads import map_in_threads
 
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
@@ -92,17 +93,20 @@ def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tu
     ``other_motions`` (moving bodies to be reconstructed), a pair matched at the prediction is
     matched in the plain disc too, and the corners that left unmatched there join: an object
     moving on its own is not where the scene's homography puts it.
-    Pairs with fewer than ``min_pair_inliers`` matches are left out."""
-    putative = {}
-    for (i, j), H in homographies.items():
+    Pairs with fewer than ``min_pair_inliers`` matches are left out. The pairs are matched side by
+    side (:func:`~torchsfm.threads.map_in_threads`: the same matches as one after another)."""
+
+    def match(pair: tuple[int, int]) -> tuple[Tensor, Tensor]:
+        (i, j), H = pair, homographies[pair]
         report(f"matching views {i} and {j}")
         if H is not None and config.pairs.warp_patches and second_sees_larger(H, raw[i]):
             index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config, other_motions)
         else:
             index1, index2 = _match_along(greys, raw, i, j, H, config, other_motions)
-        if index1.numel() >= config.reconstruction.min_pair_inliers:
-            putative[(i, j)] = (index1, index2)
-    return putative
+        return index1, index2
+
+    matched = zip(homographies, map_in_threads(match, homographies))
+    return {pair: indices for pair, indices in matched if indices[0].numel() >= config.reconstruction.min_pair_inliers}
 
 
 def second_sees_larger(H: Tensor, points: Tensor) -> bool:

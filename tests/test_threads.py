@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch.testing import assert_close
 
-from torchsfm.threads import map_in_threads
+from torchsfm.threads import map_in_threads, one_at_a_time
 
 
 def _work(seed: int) -> torch.Tensor:
@@ -50,3 +50,18 @@ def test_one_thread_is_the_plain_loop():
         assert map_in_threads(lambda item: item, []) == []
     finally:
         torch.set_num_threads(threads)
+
+
+def test_one_at_a_time_serializes_the_calls(two_threads):
+    inside, overlaps = [0], []
+
+    def report(message: str) -> str:
+        inside[0] += 1
+        overlaps.append(inside[0])
+        sum(range(20000))  # long enough for another thread to come in
+        inside[0] -= 1
+        return message
+
+    locked = one_at_a_time(report)
+    assert map_in_threads(locked, [f"m{k}" for k in range(40)]) == [f"m{k}" for k in range(40)]
+    assert max(overlaps) == 1

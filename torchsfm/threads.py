@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from typing import TypeVar
+from typing import ParamSpec, TypeVar
 
 import torch
 
 Item = TypeVar("Item")
 Result = TypeVar("Result")
+Arguments = ParamSpec("Arguments")
 
 
 def map_in_threads(function: Callable[[Item], Result], items: Iterable[Item]) -> list[Result]:
@@ -32,3 +34,15 @@ def map_in_threads(function: Callable[[Item], Result], items: Iterable[Item]) ->
             return list(pool.map(function, items))
     finally:
         torch.set_num_threads(intra_op)
+
+
+def one_at_a_time(function: Callable[Arguments, Result]) -> Callable[Arguments, Result]:
+    """``function`` behind a lock: calls from the threads of :func:`map_in_threads` (a progress
+    report, say) run one after another, never interleaved."""
+    lock = threading.Lock()
+
+    def locked(*args: Arguments.args, **kwargs: Arguments.kwargs) -> Result:
+        with lock:
+            return function(*args, **kwargs)
+
+    return locked

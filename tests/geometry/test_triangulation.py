@@ -114,3 +114,21 @@ def test_bad_input():
         torchsfm.triangulate(scene.x1, scene.x2, scene.P1, scene.P1 * 2)
     with pytest.raises(DegenerateConfigurationError, match="not a finite camera"):
         torchsfm.triangulate(scene.x1, scene.x2, torch.zeros(3, 4, **DOUBLE), scene.P2)
+
+
+@pytest.mark.parametrize("method", ["linear_eigen", "polynomial"])
+def test_a_non_finite_pair_in_a_batch_gives_nan_rows_not_an_error(method):
+    """The mapper triangulates a view against many partners in one batch; one pair without a
+    finite linear system (here NaN pixels; in a 500-frame video, the optimal correction of a
+    near-degenerate pair) comes back as NaN rows (the mapper drops non-finite points), the
+    others as alone — linalg.svd raised for the whole batch before."""
+    from torchsfm.config import TriangulationConfig
+    from torchsfm.geometry.triangulation import triangulate_points
+
+    scene = synthetic_two_view(10, seed=8)
+    x1 = torch.stack([scene.x1, scene.x1 * float("nan")])[:, :, None]
+    x2 = scene.x2.expand(2, 10, 2)[:, :, None]
+    P1, P2 = scene.P1.expand(2, 1, 3, 4), scene.P2.expand(2, 1, 3, 4)
+    X = triangulate_points(x1, x2, P1, P2, TriangulationConfig(method=method))[:, :, 0]
+    assert_close(X[0], scene.points3d, rtol=0, atol=1e-8)
+    assert torch.isnan(X[1]).all()

@@ -88,9 +88,10 @@ def biquadric_peaks(response: Tensor, pixels: Tensor, window: int) -> tuple[Tens
         proper maximum inside the support; other offsets are 0.
     """
     half = window // 2
-    patches = functional.unfold(response[None], window, padding=half)[0]  # (N², H * W)
-    W = response.shape[-1]
-    offsets, proper = biquadric_offsets(patches[:, pixels[:, 1] * W + pixels[:, 0]].T.double(), window)
+    steps = torch.arange(-half, half + 1, device=pixels.device)
+    padded = functional.pad(response, (half, half, half, half))[0]  # zeros outside, as the fit has always seen them
+    values = padded[pixels[:, 1, None, None] + half + steps[:, None], pixels[:, 0, None, None] + half + steps]  # (K, N, N)
+    offsets, proper = biquadric_offsets(values.flatten(1).double(), window)
     return offsets.to(response.dtype), proper
 
 

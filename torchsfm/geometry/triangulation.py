@@ -40,8 +40,11 @@ def _linear_system(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tensor:
 
 
 def _null_vector(A: Tensor) -> Tensor:
-    """Right singular vector of the smallest singular value: (*, 4, 4) -> (*, 4)."""
-    return torch.linalg.svd(A).Vh[..., -1, :]
+    """Right singular vector of the smallest singular value: (*, 4, 4) -> (*, 4); NaN where A
+    holds a non-finite number (e.g. a zero-baseline pair's correction), not an error for the batch."""
+    finite = torch.isfinite(A).flatten(-2).all(-1)
+    vector = torch.linalg.svd(torch.where(finite[..., None, None], A, 0.0)).Vh[..., -1, :]
+    return torch.where(finite[..., None], vector, float("nan"))
 
 
 def _least_squares_point(A: Tensor) -> Tensor:

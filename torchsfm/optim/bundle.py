@@ -366,11 +366,9 @@ class _SchurLinearization:
             reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
             del blocks
         else:
-            c, p = bundle.camera_index, bundle.point_index
-            Wt, VWt = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
-            where = (p[:, None], torch.arange(3, device=p.device)[None], c[:, None])
-            Wt.index_put_(where, self.W.transpose(1, 2))  # each (point, camera) block is observed once
-            VWt.index_put_(where, Y.transpose(1, 2))  # V*⁻¹ Wᵀ, only the observed blocks
+            Wt, VWt, rows = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
+            Wt.view(-1, dc).index_copy_(0, rows, self.W.transpose(1, 2).reshape(-1, dc))  # each (point, camera) block is observed once
+            VWt.view(-1, dc).index_copy_(0, rows, Y.transpose(1, 2).reshape(-1, dc))  # V*⁻¹ Wᵀ, only the observed blocks
             reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
         S = reduction.neg_()  # S = U* - reduction, in place: the (C dc)² matrix is the solver's largest buffer
         diagonal = S.view(C, dc, C, dc).diagonal(dim1=0, dim2=2)  # (dc, dc, C): the camera blocks
@@ -444,7 +442,7 @@ class _BundleLM:
         self.state_size = 12 if bundle.camera_model == "pinhole" else 15
         self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
         self.track_groups = track_groups(bundle.point_index, bundle.num_points)
-        self._buffers: tuple[Tensor, Tensor] | None = None
+        self._buffers: tuple[Tensor, Tensor, Tensor] | None = None
         self._block_indices: list[Tensor] | None = None
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
         self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
@@ -461,12 +459,16 @@ class _BundleLM:
             self._block_indices = [(c[:, :, None] * C + c[:, None, :]).flatten() for c in cameras]
         return self._block_indices
 
-    def dense_buffers(self) -> tuple[Tensor, Tensor]:
+    def dense_buffers(self) -> tuple[Tensor, Tensor, Tensor]:
         """Two zeroed (P, 3, C, dc) buffers for the dense reduced-camera-system product, allocated once
-        (fresh allocations of this size cost more in page faults than the product itself)."""
+        (fresh allocations of this size cost more in page faults than the product itself), and the
+        (3 O,) rows of their (P 3 C, dc) views that each observation's (3, dc) block fills: (p 3 + k) C + c."""
         if self._buffers is None:
-            shape = (self.bundle.num_points, 3, self.bundle.num_cameras, self.dc)
-            self._buffers = tuple(torch.zeros(shape, dtype=self.bundle.points.dtype, device=self.bundle.points.device) for _ in range(2))
+            bundle = self.bundle
+            shape = (bundle.num_points, 3, bundle.num_cameras, self.dc)
+            rows = (bundle.point_index[:, None] * 3 + torch.arange(3, device=bundle.point_index.device)) * bundle.num_cameras
+            self._buffers = (*(torch.zeros(shape, dtype=bundle.points.dtype, device=bundle.points.device) for _ in range(2)),
+                             (rows + bundle.camera_index[:, None]).flatten())
         return self._buffers
 
 

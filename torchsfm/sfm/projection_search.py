@@ -212,7 +212,9 @@ def _ncc_peaks(image: Tensor, centres: Tensor, patches: Tensor, half: int, radiu
     (M, 2) and (M,) bool where it is interior, at least ``threshold`` and a proper maximum."""
     side, size = 2 * (half + radius) + 1, 2 * half + 1
     window = sample_patches(image[None], centres, half + radius).view(-1, 1, side, side)
-    products = torch.bmm(patches[:, None], functional.unfold(window, size))[:, 0]  # (M, offsets row-major); patches sum to 0
+    shifted = window[:, 0].unfold(1, size, 1).unfold(2, size, 1)  # (M, offset y, offset x, size, size): views
+    shifted = shifted.permute(0, 3, 4, 1, 2).reshape(window.shape[0], size * size, -1)  # (M, patch pixels, offsets row-major)
+    products = torch.bmm(patches[:, None], shifted)[:, 0]  # (M, offsets); patches sum to 0
     sums, squares = (functional.avg_pool2d(values, size, stride=1).flatten(1) * size**2 for values in (window, window.square()))
     spread = (squares - sums.square() / size**2).clamp_min(0).sqrt()  # each offset's patch less its mean: its norm
     scores = torch.where(spread > 1e-8, products / spread.clamp_min(1e-12), 0.0).view(-1, 2 * radius + 1, 2 * radius + 1)

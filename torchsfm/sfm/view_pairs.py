@@ -29,7 +29,7 @@ from torchsfm.robust.ransac import ransac
 from torchsfm.sfm.pairs import pairs_to_match
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.pipeline import Progress
-from torchsfm.threads import map_in_threads
+from torchsfm.threads import map_in_threads, one_at_a_time
 
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
@@ -96,6 +96,8 @@ def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tu
     Pairs with fewer than ``min_pair_inliers`` matches are left out. The pairs are matched side by
     side (:func:`~torchsfm.threads.map_in_threads`: the same matches as one after another)."""
 
+    report = one_at_a_time(report)  # called from the matching threads
+
     def match(pair: tuple[int, int]) -> tuple[Tensor, Tensor]:
         (i, j), H = pair, homographies[pair]
         report(f"matching views {i} and {j}")
@@ -149,10 +151,12 @@ def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tenso
     than the disc gets at ``matching.ncc_threshold`` (:func:`chance_equivalent_threshold`: about
     0.5-0.65 instead of 0.8 on the Strecha pairs); then the strength measure and relaxation as
     before. Every match is consistent with F by construction. A pair keeps the guided matches
-    where they are more than its verified ones."""
+    where they are more than its verified ones. The pairs are matched side by side, as in
+    :func:`guided_matches`."""
     matching = config.matching
-    guided = {}
-    for (i, j), verified in pairs.items():
+
+    def rematch(pair: tuple[int, int]) -> PairMatches:
+        (i, j), verified = pair, pairs[pair]
         H = homographies.get((i, j))
         warp = patch_warps(H, raw[i].double()) if H is not None and config.pairs.warp_patches else None
         ncc = ncc_table(to_unit_float(greys[i]), to_unit_float(greys[j]), raw[i], raw[j], matching.patch_half_size, warp)
@@ -163,8 +167,9 @@ def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tenso
         threshold = chance_equivalent_threshold(ncc, disc, band, matching.ncc_threshold)
         matches = match_candidates(raw[i], raw[j], select_candidates(ncc, band, threshold), matching)
         more = matches.index1.numel() > verified.index1.numel()
-        guided[(i, j)] = replace(verified, index1=matches.index1, index2=matches.index2) if more else verified
-    return guided
+        return replace(verified, index1=matches.index1, index2=matches.index2) if more else verified
+
+    return dict(zip(pairs, map_in_threads(rematch, pairs)))
 
 
 def epipolar_band(F: Tensor, x1: Tensor, x2: Tensor, threshold: float) -> Tensor:

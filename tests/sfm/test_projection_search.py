@@ -165,3 +165,20 @@ def test_views_at_a_third_of_the_size_are_observed_like_the_others(shared_data):
     switched_off = with_overrides(Config(), ["reconstruction.observations_by_projection=false"])
     model = torchsfm.reconstruct(images, K, config=switched_off, generator=torch.Generator().manual_seed(0))
     assert int(torch.bincount(model.observation_views, minlength=11)[[3, 7]].max()) < 200, "the setting switches the search off"
+
+
+def test_low_passed_images_stay_within_their_cache_bound(monkeypatch):
+    """A long video keeps no image of every view (500 KITTI frames: 4.6 GiB): the least recently
+    used are dropped past ``CACHE_BYTES``, and an image made again is the same."""
+    from torchsfm.sfm.projection_search import LowPassedImages
+
+    generator = torch.Generator().manual_seed(0)
+    greys = [torch.randint(0, 256, (1, 40, 50), generator=generator, dtype=torch.uint8) for _ in range(12)]
+    monkeypatch.setattr(LowPassedImages, "CACHE_BYTES", 3 * 40 * 50 * 8)  # three float64 images
+    sources = LowPassedImages(greys)
+    first = [sources.at(view, 1.7).clone() for view in range(12)]
+    assert len(sources.made) == 3 and list(sources.made) == [(9, 4), (10, 4), (11, 4)]
+    sources.at(10, 1.7)  # used again: now the most recent
+    sources.at(0, 1.0)
+    assert list(sources.made) == [(11, 4), (10, 4), (0, 0)]
+    assert_close(sources.at(2, 1.7), first[2], rtol=0, atol=0)

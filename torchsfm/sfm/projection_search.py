@@ -16,6 +16,7 @@ them like the others.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from typing import TYPE_CHECKING
 
 import torch
@@ -185,24 +186,33 @@ class LowPassedImages:
     """The views' grey images as float64 (H, W) in [0, 1], each blurred for sampling at ``scale``
     of its pixels per sample (> 1: shrinking it; sigma √(s² − 1) / 2, the blur that brings its
     half-pixel resolution to that of the samples), the scale rounded up to a quarter octave so
-    that a few blurs per view serve every pair."""
+    that a few blurs per view serve every pair. The images made are kept for the next views
+    while they fit in ``CACHE_BYTES``, the least recently used dropped first: memory bounded
+    however long a video (500 KITTI frames kept every view, 4.6 GiB peak), and a view's
+    partners — its neighbours in a video — are the recently used ones."""
 
     STEPS_PER_OCTAVE = 4
+    CACHE_BYTES = 256 * 2**20
 
     def __init__(self, greys: list[Tensor]) -> None:
         self.greys = greys
-        self.made: dict[tuple[int, int], Tensor] = {}
+        self.made: OrderedDict[tuple[int, int], Tensor] = OrderedDict()
 
     def at(self, view: int, scale: float) -> Tensor:
         level = max(0, math.ceil(self.STEPS_PER_OCTAVE * math.log2(max(scale, 1.0)) - 1e-9))
-        if (view, level) not in self.made:
-            image = to_unit_float(self.greys[view])[0].double()
-            if level:
-                sigma = 0.5 * math.sqrt(2 ** (2 * level / self.STEPS_PER_OCTAVE) - 1)
-                size = 2 * math.ceil(3 * sigma) + 1
-                image = gaussian_blur2d(image[None, None], (size, size), (sigma, sigma))[0, 0]
-            self.made[(view, level)] = image
-        return self.made[(view, level)]
+        key = (view, level)
+        if key in self.made:
+            self.made.move_to_end(key)
+            return self.made[key]
+        image = to_unit_float(self.greys[view])[0].double()
+        if level:
+            sigma = 0.5 * math.sqrt(2 ** (2 * level / self.STEPS_PER_OCTAVE) - 1)
+            size = 2 * math.ceil(3 * sigma) + 1
+            image = gaussian_blur2d(image[None, None], (size, size), (sigma, sigma))[0, 0]
+        self.made[key] = image
+        while len(self.made) > 1 and sum(kept.numel() * kept.element_size() for kept in self.made.values()) > self.CACHE_BYTES:
+            self.made.popitem(last=False)
+        return image
 
 
 def _ncc_peaks(image: Tensor, centres: Tensor, patches: Tensor, half: int, radius: int, threshold: float

@@ -182,3 +182,4 @@ def test_low_passed_images_stay_within_their_cache_bound(monkeypatch):
     sources.at(0, 1.0)
     assert list(sources.made) == [(11, 4), (10, 4), (0, 0)]
     assert_close(sources.at(2, 1.7), first[2], rtol=0, atol=0)
+    assert sources.kept_bytes == sum(image.nbytes for image in sources.made.values()) == 3 * 40 * 50 * 8

@@ -197,6 +197,7 @@ class LowPassedImages:
     def __init__(self, greys: list[Tensor]) -> None:
         self.greys = greys
         self.made: OrderedDict[tuple[int, int], Tensor] = OrderedDict()
+        self.kept_bytes = 0
 
     def at(self, view: int, scale: float) -> Tensor:
         level = max(0, math.ceil(self.STEPS_PER_OCTAVE * math.log2(max(scale, 1.0)) - 1e-9))
@@ -210,8 +211,9 @@ class LowPassedImages:
             size = 2 * math.ceil(3 * sigma) + 1
             image = gaussian_blur2d(image[None, None], (size, size), (sigma, sigma))[0, 0]
         self.made[key] = image
-        while len(self.made) > 1 and sum(kept.numel() * kept.element_size() for kept in self.made.values()) > self.CACHE_BYTES:
-            self.made.popitem(last=False)
+        self.kept_bytes += image.nbytes
+        while len(self.made) > 1 and self.kept_bytes > self.CACHE_BYTES:
+            self.kept_bytes -= self.made.popitem(last=False)[1].nbytes
         return image
 
 

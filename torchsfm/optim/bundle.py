@@ -43,6 +43,7 @@ from torchsfm.numerics import floor_tiny
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
 DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
 BLOCK_CHUNK_NUMBERS = 2**22  # its block path forms the camera-pair blocks of this many numbers at a time (32 MiB)
+BLOCK_NUMBER_FLOPS = 100  # measured: forming and adding one number of a camera-pair block costs about this many GEMM flops
 INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0, 0.0),
                         "cx": (0.0, 0.0, 1.0, 0.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0, 0.0),
                         "k1": (0.0, 0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy, k1)
@@ -340,31 +341,19 @@ class _SchurLinearization:
     def _dense(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
         """S = U* - Σ_p W_p V*_p⁻¹ W_pᵀ, then Cholesky; rhs (C, dc) or (C, dc, m) columns.
 
-        Short tracks: points are processed in groups of equal track length n, one batched
-        product (n dc × 3)(3 × n dc) per group giving every camera-pair block of every point,
-        added into S. Long tracks make those blocks (Σ n_p² dc² numbers) outweigh one GEMM with W
-        laid out densely as (C dc, 3 P), which is then used instead (measured crossover: a block
-        number costs about 100 GEMM flops) unless its two (3 P, C dc) buffers would exceed
+        The sum from the camera-pair blocks of every point (:meth:`_camera_pair_blocks`: Σ_p
+        n_p² blocks of dc² numbers), or, where those outweigh it, from one GEMM with
+        W laid out densely as (C dc, 3 P) (measured crossover: a block number costs about
+        ``BLOCK_NUMBER_FLOPS`` GEMM flops) unless its two (3 P, C dc) buffers would exceed
         ``DENSE_BUFFER_BYTES`` (many views and many points). Fixed cameras have zero rows in U and W, so only their
         damping remains on S's diagonal and their step is exactly 0.
         """
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        block_numbers = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups) * dc * dc
+        blocks = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups)
         buffer_bytes = 2 * 3 * P * C * dc * torch.finfo(U.dtype).bits // 8
-        if block_numbers * 100 <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
-            blocks = torch.zeros(C * C, dc, dc, dtype=U.dtype, device=U.device)
-            for observations, block_index in zip(problem.track_groups, problem.block_indices()):  # (P_n, n) ids, (P_n n n,) S blocks
-                n = observations.shape[1]
-                rows = max(1, BLOCK_CHUNK_NUMBERS // (n * n * dc * dc))  # points at a time: bounded products
-                for first in range(0, observations.shape[0], rows):
-                    part = observations[first:first + rows]
-                    left = Y[part].reshape(-1, n * dc, 3)
-                    right = self.W[part].reshape(-1, n * dc, 3)
-                    products = (left @ right.transpose(1, 2)).reshape(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc)
-                    blocks.index_add_(0, block_index[first * n * n:(first + part.shape[0]) * n * n], products)
-            reduction = blocks.reshape(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
-            del blocks
+        if blocks * dc * dc * BLOCK_NUMBER_FLOPS <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
+            reduction = self._camera_pair_blocks(Y)
         else:
             Wt, VWt, rows = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
             Wt.view(-1, dc).index_copy_(0, rows, self.W.transpose(1, 2).reshape(-1, dc))  # each (point, camera) block is observed once
@@ -378,6 +367,27 @@ class _SchurLinearization:
             return torch.zeros_like(rhs), torch.tensor(False)
         columns = rhs.reshape(C * dc, -1)  # (C dc) x 1, or 1 + m with the intrinsics' border
         return torch.cholesky_solve(columns, L).reshape(rhs.shape), torch.tensor(True, device=U.device)
+
+    def _camera_pair_blocks(self, Y: Tensor) -> Tensor:
+        """Σ_p W_p V*_p⁻¹ W_pᵀ (C dc, C dc) from Y = W V*⁻¹ (O, dc, 3), block by block: block
+        (c_a, c_b) = Σ Y_a W_bᵀ over the pairs of observations a, b of one point in cameras c_a,
+        c_b. Points in groups of equal track length n, ``BLOCK_CHUNK_NUMBERS`` numbers at a time:
+        one batched product (n dc × 3)(3 × n dc) per chunk gives every camera-pair block of its
+        points, added into S. The blocks' positions in S are made per chunk, not kept: Σ n² of
+        them is hundreds of megabytes for a long video's tracks."""
+        problem, bundle = self.problem, self.problem.bundle
+        C, dc = bundle.num_cameras, problem.dc
+        blocks = torch.zeros(C * C, dc, dc, dtype=Y.dtype, device=Y.device)
+        for observations in problem.track_groups:  # (P_n, n) observation ids
+            n = observations.shape[1]
+            points_at_a_time = max(1, BLOCK_CHUNK_NUMBERS // (n * n * dc * dc))
+            for start in range(0, observations.shape[0], points_at_a_time):
+                part = observations[start:start + points_at_a_time]
+                cameras = bundle.camera_index[part]  # (p, n)
+                products = Y[part].reshape(-1, n * dc, 3) @ self.W[part].reshape(-1, n * dc, 3).transpose(1, 2)
+                blocks.index_add_(0, (cameras[:, :, None] * C + cameras[:, None, :]).flatten(),
+                                  products.view(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc))
+        return blocks.view(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
 
     def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
         """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks);
@@ -443,21 +453,10 @@ class _BundleLM:
         self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
         self.track_groups = track_groups(bundle.point_index, bundle.num_points)
         self._buffers: tuple[Tensor, Tensor, Tensor] | None = None
-        self._block_indices: list[Tensor] | None = None
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
         self.camera_rows = (2 * torch.bincount(bundle.camera_index, minlength=bundle.num_cameras)).tolist()
         self.intrinsics_basis = torch.tensor([INTRINSIC_PARAMETERS[name] for name in bundle.shared_intrinsics],
                                              dtype=bundle.points.dtype, device=bundle.points.device).reshape(-1, 5).T
-
-    def block_indices(self) -> list[Tensor]:
-        """Per track-length group, the (P_n n n,) index of the reduced-camera-system block each
-        observation pair feeds; built on first use only (the dense solver's short-track path:
-        Σ n² per point would be gigabytes for a long video's tracks)."""
-        if self._block_indices is None:
-            C = self.bundle.num_cameras
-            cameras = [self.bundle.camera_index[observations] for observations in self.track_groups]
-            self._block_indices = [(c[:, :, None] * C + c[:, None, :]).flatten() for c in cameras]
-        return self._block_indices
 
     def dense_buffers(self) -> tuple[Tensor, Tensor, Tensor]:
         """Two zeroed (P, 3, C, dc) buffers for the dense reduced-camera-system product, allocated once

@@ -49,6 +49,30 @@ def test_related_views_score_higher_than_an_unrelated_one():
     assert torch.equal(scores, scores.T)
 
 
+def test_scores_over_many_views_are_each_pair_s_mutual_best_count():
+    """Twenty views (more than ``SCORED_VIEWS`` are scored against a view per product): each
+    pair's score is the number of mutually best NCC matches above the threshold in that pair's
+    own table, counted pair by pair."""
+    from torchsfm.sfm.pairs import SCORED_VIEWS, CoarseFeatures, _mutual_best
+
+    generator = torch.Generator().manual_seed(0)
+    V, K, D = 20, 30, 25
+    assert V > 2 * SCORED_VIEWS
+    patches = torch.nn.functional.normalize(torch.randn(V, K, D, generator=generator, dtype=torch.float64), dim=-1)
+    patches[1:] = 0.8 * patches[:1] + 0.2 * patches[1:]  # similar views: many strong mutual matches
+    patches = torch.nn.functional.normalize(patches, dim=-1)
+    valid = torch.ones(V, K, dtype=torch.bool)
+    features = CoarseFeatures(points=torch.zeros(V, K, 2, dtype=torch.float64), patches=patches, valid=valid)
+    scores = pair_scores(features, 0.8)
+    expected = torch.zeros(V, V, dtype=torch.long)
+    for i in range(V):
+        for j in range(V):
+            if i != j:
+                expected[i, j] = _mutual_best(patches[j] @ patches[i].T, 0.8)[0].numel()
+    assert int(expected.max()) > 0
+    assert torch.equal(scores, expected)
+
+
 def test_views_of_different_sizes_are_described_as_each_alone():
     """A landscape view and a portrait one (the same view turned a quarter): each view's coarse
     corners and patches are the ones it gets on its own (one reduction factor: the largest side

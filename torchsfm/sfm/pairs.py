@@ -35,6 +35,7 @@ from torchsfm.robust.ransac import ransac
 from torchsfm.robust.samplers import side_generator
 
 HOMOGRAPHY_BATCH = 32  # view pairs per batched RANSAC call of the coarse homographies
+SCORED_VIEWS = 8  # views scored against one view per product (measured: 1.7x faster than all at once at 150 views)
 
 
 @dataclass
@@ -118,15 +119,20 @@ def pair_scores(features: CoarseFeatures, threshold: float) -> Tensor:
 
 def mutual_best_counts(features: CoarseFeatures, view: int, others: Tensor, threshold: float) -> Tensor:
     """(O,) number of mutually best coarse NCC matches above ``threshold`` between ``view`` and
-    each of the (O,) ``others`` (one GEMM)."""
+    each of the (O,) ``others``: one GEMM per ``SCORED_VIEWS`` of them, whose (SCORED_VIEWS, L, K)
+    table stays in the cache while its best matches are read (one GEMM against all others made a
+    (O, L, K) table — 360 MB at 500 views — and took 1.7× as long)."""
     if features.patches.shape[1] == 0 or others.numel() == 0:  # no view has a coarse corner
         return torch.zeros(others.numel(), dtype=torch.long)
-    ncc = features.patches[others] @ features.patches[view].T  # (O, L, K): corner l of view o, corner k of the view
-    best2 = ncc.argmax(1)  # (O, K): best partner in view o of each corner of the view
-    best1 = ncc.argmax(2)  # (O, L): best corner of the view for each corner of o
-    mutual = best1.gather(1, best2) == torch.arange(ncc.shape[2])[None]
-    strong = ncc.gather(1, best2[:, None])[:, 0] > threshold
-    return (mutual & strong & features.valid[view][None]).sum(1)
+    counts = []
+    for part in others.split(SCORED_VIEWS):
+        ncc = features.patches[part] @ features.patches[view].T  # (o, L, K): corner l of view o, corner k of the view
+        best2 = ncc.argmax(1)  # (o, K): best partner in view o of each corner of the view
+        best1 = ncc.argmax(2)  # (o, L): best corner of the view for each corner of o
+        mutual = best1.gather(1, best2) == torch.arange(ncc.shape[2])[None]
+        strong = ncc.gather(1, best2[:, None])[:, 0] > threshold
+        counts.append((mutual & strong & features.valid[view][None]).sum(1))
+    return torch.cat(counts)
 
 
 def considered_pairs(scores: Tensor | None, config: PairsConfig, num_views: int) -> list[tuple[int, int]]:

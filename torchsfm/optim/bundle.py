@@ -350,9 +350,9 @@ class _SchurLinearization:
         """
         problem, bundle = self.problem, self.problem.bundle
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        blocks = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups)
+        block_count = sum(observations.shape[0] * observations.shape[1] ** 2 for observations in problem.track_groups)
         buffer_bytes = 2 * 3 * P * C * dc * torch.finfo(U.dtype).bits // 8
-        if blocks * dc * dc * BLOCK_NUMBER_FLOPS <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
+        if block_count * dc * dc * BLOCK_NUMBER_FLOPS <= (C * dc) ** 2 * 3 * P or buffer_bytes > DENSE_BUFFER_BYTES:
             reduction = self._camera_pair_blocks(Y)
         else:
             Wt, VWt, rows = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations

@@ -13,12 +13,14 @@ odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, nin
 it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away),
 and with a time stamp burnt into every frame, without and with its mask (``kitti06_stamped``, ``kitti06_stamped_masked``);
 fountain-P11 seen through a lens with radial distortion k1 = -0.02 that K does not describe (``fountain_distorted``);
+KITTI 06 with a stop: frame 25 held for 20 more frames (a car waiting at a light), every frame with
+sensor noise of 2 grey levels (``kitti06_stop``, 71 frames);
 Oxford VGG Merton College I (three 1024x768 photos of a building, turning 6.5-16.7 degrees between views;
 never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
-maxima), consecutive-frame relative rotation error, seconds — beside pycolmap on the same images
+maxima), consecutive-frame relative rotation error, the still frames (:func:`torchsfm.sfm.mapping.still_frames`) where any, seconds — beside pycolmap on the same images
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping; with
 ``--no-K`` its own default, SIMPLE_RADIAL: one focal length from its prior and one radial distortion coefficient,
 refined, the principal point at the centre).
@@ -56,7 +58,7 @@ def subset(sequence: StrechaSequence, order: list[int]) -> StrechaSequence:
 
 def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, turned: tuple[int, ...] = (),
                 scaled: tuple[int, ...] | None = None, zoomed: tuple[int, ...] = (), tilted: tuple[int, ...] = (),
-                stamped: bool = False, distorted: float = 0.0) -> StrechaSequence:
+                stamped: bool = False, distorted: float = 0.0, noise: float = 0.0) -> StrechaSequence:
     """The sequence's images resized by ``scale`` (antialiased bilinear; only the ``scaled``
     views where given: a set from several cameras), the ``zoomed`` views' centres (1/2 of each
     side) resized back to the full size (a zoom lens at twice the focal length), the ``tilted``
@@ -68,7 +70,9 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
     pixels of every image, 20 px from the left and 10 px from the bottom (a video's time stamp),
     and its mask written as ``folder/overlay_mask.png`` (black on it). ``distorted``: every image
     resampled as a lens with that radial coefficient k1 (normalized coordinates, about the
-    principal point) would see it, K, R and t unchanged (a camera whose distortion nobody gives)."""
+    principal point) would see it, K, R and t unchanged (a camera whose distortion nobody gives).
+    ``noise``: Gaussian sensor noise of this standard deviation (grey levels, seeded by the view)
+    added to every image, so that a frame repeated in the sequence is a new exposure of one view."""
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)  # x' = H - 1 - y, y' = x
     paths, Ks, Rs, ts = [], [], [], []
     for v, path in enumerate(sequence.images):
@@ -99,6 +103,9 @@ def transformed(sequence: StrechaSequence, folder: Path, scale: float = 1.0, tur
         if distorted:
             lens = torch.tensor([distorted, 0.0], dtype=torch.float64)
             image = distort_image(image[None].float(), K, lens)[0].round().clamp(0, 255).byte()
+        if noise:
+            grain = noise * torch.randn(image.shape, generator=torch.Generator().manual_seed(v))
+            image = (image.float() + grain).round().clamp(0, 255).byte()
         if stamped:
             image = image.clone()
             image[..., stamp_region(image.shape[-2])[0], stamp_region(image.shape[-2])[1]] = STAMP
@@ -148,6 +155,8 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "fountain_tilted": lambda: transformed(fountain, work / "inputs" / "fountain_tilted", tilted=(3, 7)),
         "kitti06_stamped": lambda: transformed(kitti, work / "inputs" / "kitti06_stamped", stamped=True),
         "fountain_distorted": lambda: transformed(fountain, work / "inputs" / "fountain_distorted", distorted=-0.02),
+        "kitti06_stop": lambda: transformed(subset(kitti, list(range(26)) + [25] * 20 + list(range(26, 51))),
+                                            work / "inputs" / "kitti06_stop", noise=2.0),
     }
     made["kitti06_stamped_masked"] = made["kitti06_stamped"]
     chosen = {
@@ -202,7 +211,8 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
     bodies = "" if not config.moving_objects.reconstruct_objects else ", moving bodies: " + (", ".join(
         f"{body.label} ({body.num_tracks} tracks, " + (f"{body.model.num_views} views)" if body.model else "no model)")
         for body in model.objects) or "none")
-    return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}, {seconds:.1f} s"
+    still = f", {len(model.still_frames)} still frames (resected, not adjusted)" if model.still_frames else ""
+    return f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}{still}, {seconds:.1f} s"
 
 
 def colmap_pinhole(K: torch.Tensor) -> list[float]:

@@ -140,6 +140,19 @@ def test_reconstruct_reports_a_loose_resection(shared_data, tmp_path, capsys):
     assert "view 0 registered at a widened resection threshold of 8 px" in capsys.readouterr().out
 
 
+def test_reconstruct_reports_still_frames(shared_data, tmp_path, capsys):
+    """A video that stops (fountain view 1 three times): frames 2 and 3 did not move from
+    keyframe 1, and both the summary and the printout say they were resected, not adjusted."""
+    folder = shared_data / "strecha_fountain_P11"
+    images = [str(folder / f"000{v}.jpg") for v in (0, 1, 1, 1, 2)]
+    out = tmp_path / "stops"
+    assert main(["reconstruct", *images, "--K", str(K_FILE), "--quiet", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["views_registered"] == 5
+    assert summary["still_frames"] == [{"index": 2, "keyframe": 1}, {"index": 3, "keyframe": 1}]
+    assert "view 3: the camera did not move from view 1; resected from the model, not adjusted" in capsys.readouterr().out
+
+
 def test_reconstruct_needs_two_images(tmp_path, capsys):
     assert main(["reconstruct", str(IMAGE1), "--K", str(K_FILE), "--out", str(tmp_path / "o"), "--quiet"]) == 2
     assert "at least 2 images, got 1" in capsys.readouterr().err

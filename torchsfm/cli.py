@@ -94,6 +94,8 @@ def _reconstruct(args: argparse.Namespace) -> None:
         print(f"view {view['index']} not registered: {view['reason']}")
     for view in summary["loose_resections"]:
         print(f"view {view['index']} registered at a widened resection threshold of {view['threshold_px']:g} px (less certain)")
+    for view in summary["still_frames"]:
+        print(f"view {view['index']}: the camera did not move from view {view['keyframe']}; resected from the model, not adjusted")
     _print_moving_objects(summary)
     for body in summary["objects"]:
         print(f"moving body {body['label']} ({body['tracks']} tracks): " + (

@@ -432,8 +432,11 @@ class ReconstructionConfig:
     Bundle adjustment runs every ``bundle_every`` new views (0: only at the end) and at the end;
     with ``local_bundle_window`` W > 0, each new view that no full adjustment follows gets a local
     adjustment of the W newest views and the points they see (the older views that see those points hold
-    them fixed), so a long sequence's poses stay adjusted at a cost bounded by W, not by its length;
-    then, ``retriangulations`` times, the tracks without a point are triangulated again from the
+    them fixed), so a long sequence's poses stay adjusted at a cost bounded by W, not by its length.
+    With ``keyframes``, a frame whose camera did not move from the last keyframe before it (its
+    tracks moved less than half a pixel, median: a car waiting at a light) stays out of all of this
+    and is resected from the finished model (:func:`torchsfm.sfm.mapping.still_frames`).
+    Then, ``retriangulations`` times, the tracks without a point are triangulated again from the
     adjusted cameras and the model adjusted once more; then once with every observation within twice
     ``max_reprojection_error`` (those the gate dropped against earlier cameras, which the later
     adjustments fitted their points without), before the gate drops outliers for the last
@@ -466,6 +469,7 @@ class ReconstructionConfig:
     min_track_views: int = 2
     bundle_every: int = 0
     local_bundle_window: int = 0
+    keyframes: bool = True
     retriangulations: int = 1
     observations_by_projection: bool = True
     bundle_loss: Loss = "cauchy"

@@ -32,6 +32,9 @@ class Reconstruction:
         loose_resections: multi-view models only: input views whose resection kept too few
             inliers at ``resection.ransac.inlier_threshold`` and registered at a wider threshold
             (px; see :func:`torchsfm.sfm.mapping.resect`): less certain than the others.
+        still_frames: multi-view models only: input views whose camera did not move from an
+            earlier keyframe (``{view: keyframe}``, :func:`torchsfm.sfm.mapping.still_frames`):
+            resected from the final model, not bundle-adjusted.
         timings: seconds per pipeline stage.
         moving_objects: with moving-object rejection on, IMOR + RANSAC's result for every frame
             triplet (input view indices, the middle one the reference); its vectors are the
@@ -64,6 +67,7 @@ class Reconstruction:
     view_indices: list[int] = field(default_factory=list)
     unregistered: dict[int, str] = field(default_factory=dict)
     loose_resections: dict[int, float] = field(default_factory=dict)
+    still_frames: dict[int, int] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)
     moving_rejections_per_view: dict[int, int] = field(default_factory=dict)

@@ -170,3 +170,27 @@ def test_a_loose_resection_that_its_verified_pair_contradicts_is_refused():
     reason = pair_disagreement(state, pairs, 2, turned, t[2], 8.0)
     assert reason == "its resection at 8 px disagrees with its verified pair with view 1: 0 of the pair's 300 matches fit the two poses"
     assert pair_disagreement(state, {}, 2, turned, t[2], 8.0) is None  # no pair to check against
+
+
+def test_still_frames_are_measured_against_their_keyframe_so_a_slow_drift_starts_a_new_one():
+    """Six frames of 100 tracks shifted by 0, 0.1, 0.2, 0.35, 0.55, 0.72 px: frames 1-3 stay
+    within half a pixel of frame 0 (still); frame 4 has drifted 0.55 px from it and is the next
+    keyframe, frame 5 is 0.17 px from frame 4 (still). Sharing only 10 tracks with frame 0 (too
+    few to resect from), frame 1 is a keyframe, and so is frame 2, which shares as few with it;
+    3 and 4 are then still against 2, and 5, 0.52 px from 2, is not. When every frame is still,
+    none is left out (one keyframe cannot start a model)."""
+    from torchsfm.sfm.mapping import still_frames
+
+    generator = torch.Generator().manual_seed(0)
+    base = torch.rand(100, 2, generator=generator, dtype=torch.float64) * 600
+    shifts = [0.0, 0.1, 0.2, 0.35, 0.55, 0.72]
+    corners = [base + torch.tensor([shift, 0.0], dtype=torch.float64) for shift in shifts]
+    track = torch.arange(100).repeat_interleave(6)
+    tracks = Tracks(view=torch.arange(6).repeat(100), corner=track.clone(), track=track, num_tracks=100)
+    assert still_frames(tracks, corners, Config()) == {1: 0, 2: 0, 3: 0, 5: 4}
+
+    seen = (tracks.view != 1) | (tracks.track < 10)  # frame 1 sees 10 of the tracks
+    sparse = Tracks(view=tracks.view[seen], corner=tracks.corner[seen], track=tracks.track[seen], num_tracks=100)
+    assert still_frames(sparse, corners, Config()) == {3: 2, 4: 2}
+
+    assert still_frames(tracks, [base] * 6, Config()) == {}

@@ -58,6 +58,7 @@ class MapperState:
         self.t = torch.zeros(V, 3, dtype=torch.float64)
         self.registered = torch.zeros(V, dtype=torch.bool)
         self.loose_resections: dict[int, float] = {}  # view -> the widened threshold its resection needed (px)
+        self.still_frames: dict[int, int] = {}  # view -> the keyframe it did not move from (posed, not adjusted)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
         self.pixels = tracks.gather(corners)  # (T, 2) undistorted
@@ -606,21 +607,31 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     are left that the model cannot reach (the set splits), another model is started from the
     verified pairs among them, and so on. The model with most views is returned; the others are
     its ``other_models``, largest first, and its ``unregistered`` names, for every view it lacks,
-    the separate model it belongs to or why it belongs to none."""
+    the separate model it belongs to or why it belongs to none. With ``reconstruction.keyframes``,
+    the frames whose camera did not move (:func:`still_frames`) take no part in growing a model:
+    each is resected from the finished model of its keyframe (:func:`pose_still_frames`)."""
     V = len(state.corners)
+    still = still_frames(state.tracks, state.corners, config) if config.reconstruction.keyframes else {}
+    if still:
+        state.report(f"{len(still)} frames did not move from the keyframe before them: posed against the model, not adjusted")
+    keyframes = torch.ones(V, dtype=torch.bool)
+    keyframes[list(still)] = False
     grown: list[tuple[MapperState, dict[int, str]]] = []
     remaining = torch.ones(V, dtype=torch.bool)
-    while int(remaining.sum()) >= 2:
+    while int((remaining & keyframes).sum()) >= 2:
         try:
-            model, unregistered = grow_model(state, config, remaining)
+            model, unregistered = grow_model(state, config, remaining & keyframes)
         except DegenerateConfigurationError:
             if not grown:
                 raise
             break  # the views left cannot start a model of their own: they keep their reasons
+        start = time.perf_counter()
+        unregistered.update(pose_still_frames(model, still, config, state.generator))
+        state.timings["resection"] = state.timings.get("resection", 0.0) + time.perf_counter() - start
         grown.append((model, unregistered))
         remaining &= ~model.registered
     grown.sort(key=lambda item: -int(item[0].registered.sum()))
-    reasons: dict[int, str] = {}
+    reasons = {frame: f"the camera did not move from view {key}, which no model holds" for frame, key in still.items()}
     for _, unregistered in reversed(grown):  # the largest model's reasons last: they stand
         reasons.update(unregistered)
     colours = [colour if colour is not None else image for colour, image in zip(state.colours or [None] * V, state.images)]
@@ -633,6 +644,44 @@ def map_incrementally(state, config: Config) -> Reconstruction:
     primary.unregistered = {view: reasons[view] for view in range(V) if view not in primary.view_indices}
     primary.other_models = built[1:]
     return primary
+
+
+def still_frames(tracks: Tracks, corners: list[Tensor], config: Config) -> dict[int, int]:
+    """The frames, in file order, whose camera did not move from the last keyframe before them
+    (a car waiting at a light), as {frame: keyframe}: they share ``min_resection_inliers`` tracks
+    or more with it, whose corners (K_v, 2) moved less than ``STILL`` px (median) — sub-pixel
+    corner noise, no baseline to triangulate from. Each frame is measured against the keyframe,
+    not its predecessor, so that a slow drift starts a new keyframe once it adds up. Empty when
+    fewer than two keyframes would be left (the initial-pair test then names the still camera)."""
+    still, key = {}, 0
+    for view in range(1, len(corners)):
+        in_key, in_view = tracks.shared(key, view)
+        if (in_key.numel() >= config.reconstruction.min_resection_inliers
+                and float((corners[view][in_view] - corners[key][in_key]).norm(dim=-1).median()) < STILL):
+            still[view] = key
+        else:
+            key = view
+    return still if len(corners) - len(still) >= 2 else {}
+
+
+def pose_still_frames(model: MapperState, still: dict[int, int], config: Config, generator: torch.Generator) -> dict[int, str]:
+    """Register the ``still`` frames ({frame: keyframe}) whose keyframe the model holds, each
+    resected from the model's final points (:func:`resect_views`) and left out of the
+    adjustments (its observations would only repeat its keyframe's); returns, for each of them
+    that could not be posed, why."""
+    frames = [frame for frame, key in sorted(still.items()) if model.registered[key]]
+    reasons = {}
+    for frame, outcome in zip(frames, resect_views(model, frames, config, generator) if frames else []):
+        if isinstance(outcome, str):
+            reasons[frame] = f"the camera did not move from view {still[frame]}; {outcome}"
+            continue
+        pose, threshold = outcome
+        model.R[frame], model.t[frame] = pose.R, pose.t
+        model.registered[frame] = True
+        model.still_frames[frame] = still[frame]
+        if threshold > config.resection.ransac.inlier_threshold:
+            model.loose_resections[frame] = threshold
+    return reasons
 
 
 def starting_pair(state, pairs: dict[tuple[int, int], PairMatches], config: Config, allowed: Tensor, timed
@@ -841,6 +890,7 @@ def build_reconstruction(model: MapperState, colours: list[Tensor] | None, sizes
         point_tracks=point_tracks,
         unregistered=unregistered,
         loose_resections={view: threshold for view, threshold in sorted(model.loose_resections.items()) if model.registered[view]},
+        still_frames=dict(sorted(model.still_frames.items())),
         timings=timings,
     )
 

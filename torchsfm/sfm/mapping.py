@@ -652,15 +652,29 @@ def still_frames(tracks: Tracks, corners: list[Tensor], config: Config) -> dict[
     or more with it, whose corners (K_v, 2) moved less than ``STILL`` px (median) — sub-pixel
     corner noise, no baseline to triangulate from. Each frame is measured against the keyframe,
     not its predecessor, so that a slow drift starts a new keyframe once it adds up. Empty when
-    fewer than two keyframes would be left (the initial-pair test then names the still camera)."""
+    fewer than two keyframes would be left (the initial-pair test then names the still camera).
+    One pass over each view's observations: the keyframe's pixel of every track in a table."""
+    order = torch.argsort(tracks.view, stable=True)
+    bounds = torch.searchsorted(tracks.view[order], torch.arange(len(corners) + 1)).tolist()
+    observations = [order[start:end] for start, end in zip(bounds[:-1], bounds[1:])]  # each view's
+
+    def pixels(view: int) -> tuple[Tensor, Tensor]:
+        return tracks.track[observations[view]], corners[view][tracks.corner[observations[view]]].double()
+
     still, key = {}, 0
+    at_key = torch.full((tracks.num_tracks, 2), torch.nan, dtype=torch.float64)  # the keyframe's pixel per track
+    seen, where = pixels(0)
+    at_key[seen] = where
     for view in range(1, len(corners)):
-        in_key, in_view = tracks.shared(key, view)
-        if (in_key.numel() >= config.reconstruction.min_resection_inliers
-                and float((corners[view][in_view] - corners[key][in_key]).norm(dim=-1).median()) < STILL):
+        seen, where = pixels(view)
+        motion = (where - at_key[seen]).norm(dim=-1)
+        motion = motion[~motion.isnan()]  # the tracks shared with the keyframe
+        if motion.numel() >= config.reconstruction.min_resection_inliers and float(motion.median()) < STILL:
             still[view] = key
-        else:
-            key = view
+            continue
+        at_key[pixels(key)[0]] = torch.nan
+        key = view
+        at_key[seen] = where
     return still if len(corners) - len(still) >= 2 else {}
 
 

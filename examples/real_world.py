@@ -9,8 +9,8 @@ size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K)
 ``reconstruction.max_image_size``, reduced while the others are not) and with views 3 and 7 zoomed in twice (their
 centres at full size: one image size, two focal lengths; each view its own K) and with views 3 and 7 tilted by 30
 degrees (turned about the optical axis); the KITTI
-odometry 06 excerpt (51 frames, forward motion), every third, fifth, eighth, ninth and tenth frame of
-it (about 4, 6, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away),
+odometry 06 excerpt (51 frames, forward motion), every second, third, fifth, sixth, seventh, eighth, ninth and tenth
+frame of it (about 2.4, 4, 6, 7, 8, 10, 11 and 12 m apart; every tenth also from frame 5), its frames shuffled and in reverse (the camera backing away),
 and with a time stamp burnt into every frame, without and with its mask (``kitti06_stamped``, ``kitti06_stamped_masked``);
 fountain-P11 seen through a lens with radial distortion k1 = -0.02 that K does not describe (``fountain_distorted``);
 KITTI 06 with a stop: frame 25 held for 20 more frames (a car waiting at a light), every frame with
@@ -171,8 +171,11 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "fountain_every4": subset(fountain, [0, 4, 8, 10]),
         "fountain_2_6_10": subset(fountain, [2, 6, 10]),
         "kitti06": kitti,
+        "kitti06_every2": subset(kitti, list(range(0, 51, 2))),
         "kitti06_every3": subset(kitti, list(range(0, 51, 3))),
         "kitti06_every5": subset(kitti, list(range(0, 51, 5))),
+        "kitti06_every6": subset(kitti, list(range(0, 51, 6))),
+        "kitti06_every7": subset(kitti, list(range(0, 51, 7))),
         "kitti06_every8": subset(kitti, list(range(0, 51, 8))),
         "kitti06_every9": subset(kitti, list(range(0, 51, 9))),
         "kitti06_every10": subset(kitti, list(range(0, 51, 10))),

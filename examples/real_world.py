@@ -3,7 +3,7 @@
 Cases (``--cases`` picks some): Strecha fountain-P11 and Herz-Jesu-P8 in file order, in a
 shuffled order (a fixed seeded permutation) and with every third view only (wide baselines);
 fountain views 8, 0, 4 (about 20 degrees apart, out of order), 0, 5, 10 and 2, 6, 10 (47-61
-degrees apart) and 0, 4, 8, 10; fountain-P11 at half size (384x256), Herz-Jesu-P8 at double
+degrees apart) and 0, 4, 8, 10; fountain-P11 and Herz-Jesu-P8 at half size (384x256), Herz-Jesu-P8 at double
 size (1536x1024) and with views 0 and 4 turned to portrait (each view its own K); fountain-P11 with views
 3 and 7 at half size (two cameras: the same scene at two scales), at a third of the size (``fountain_third``), at four times the size (3072x2048: beyond
 ``reconstruction.max_image_size``, reduced while the others are not) and with views 3 and 7 zoomed in twice (their
@@ -146,6 +146,7 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
     shuffle = lambda n: torch.randperm(n, generator=torch.Generator().manual_seed(7)).tolist()  # noqa: E731
     made = {
         "fountain_half": lambda: transformed(fountain, work / "inputs" / "fountain_half", scale=0.5),
+        "herzjesu_half": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_half", scale=0.5),
         "herzjesu_double": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_double", scale=2.0),
         "herzjesu_portrait": lambda: transformed(herzjesu, work / "inputs" / "herzjesu_portrait", turned=(0, 4)),
         "fountain_mixed": lambda: transformed(fountain, work / "inputs" / "fountain_mixed", scale=0.5, scaled=(3, 7)),

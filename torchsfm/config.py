@@ -259,6 +259,10 @@ class MatchingConfig:
     or ``winner_take_all``; it stops when no candidate above ``strength_threshold`` is left or
     after ``max_relaxation_iterations``. Values follow Zhang et al. (1995) where the thesis gives
     none (ε_r = 0.3, NCC > 0.8).
+
+    ``reference_size``: the image size, √(H W) in pixels, the two radii are for: the pipelines
+    (:meth:`for_images`) shrink them for smaller images, 0 never (:func:`match_corners` itself
+    takes them as given).
     """
 
     patch_half_size: int = 5
@@ -271,16 +275,33 @@ class MatchingConfig:
     alpha: float = 0.6
     strength_threshold: float = 0.0
     max_relaxation_iterations: int = 100
+    reference_size: float = 627.0
 
     def __post_init__(self) -> None:
         _require_choices(self)
         _require(self.patch_half_size >= 1, "patch_half_size", self.patch_half_size, "must be >= 1")
+        _require(self.reference_size >= 0, "reference_size", self.reference_size, "must be >= 0")
         _require(self.search_radius > 0, "search_radius", self.search_radius, "must be > 0")
         _require(-1 <= self.ncc_threshold < 1, "ncc_threshold", self.ncc_threshold, "must lie in [-1, 1)")
         _require(self.neighbourhood_radius > 0, "neighbourhood_radius", self.neighbourhood_radius, "must be > 0")
         _require(self.relative_distance_threshold > 0, "relative_distance_threshold", self.relative_distance_threshold, "must be > 0")
         _require(0 < self.alpha <= 1, "alpha", self.alpha, "must lie in (0, 1]")
         _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
+
+    def for_images(self, *shapes: tuple[int, ...]) -> MatchingConfig:
+        """These settings for matching a set of images of ``shapes`` (..., H, W): ``search_radius``
+        and ``neighbourhood_radius`` times √(H W) / ``reference_size`` of its largest image where
+        that is below 1 (a set from several cameras is matched at its largest image's scale, as its
+        coarse matching is). The corner budget (``harris.max_corners``) is fixed, so a disc of a fixed radius in
+        a smaller image holds more of its corners — at half the size four times the candidates and
+        strength-measure neighbours: slower, and more chance candidates for the relaxation — and
+        the scene moves across fewer pixels. Larger images keep the radii: the coarse homography
+        centres their discs, and growing them cost time without a measured gain (Herz-Jesu-P8 at
+        twice the size)."""
+        scale = max(math.sqrt(shape[-2] * shape[-1]) for shape in shapes) / self.reference_size if self.reference_size else 1.0
+        if scale >= 1:
+            return self
+        return dataclasses.replace(self, search_radius=self.search_radius * scale, neighbourhood_radius=self.neighbourhood_radius * scale)
 
 
 @dataclass(frozen=True)

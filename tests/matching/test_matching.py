@@ -169,3 +169,35 @@ def test_chance_equivalent_threshold_keeps_the_chance_candidates_per_corner():
     in_tenth, in_all = int((ncc[tenth] > threshold).sum()), int((ncc > 0.8).sum())
     assert abs(in_tenth - in_all) <= 0.25 * in_all  # uniform chance scores: 0.8 -> about -0.2
     assert chance_equivalent_threshold(ncc, tenth, everything, 0.8) == 0.8
+
+
+def test_radii_shrink_for_a_set_of_smaller_images_only():
+    config = MatchingConfig()
+    scale = (256 * 384) ** 0.5 / config.reference_size  # half the 768 x 512 images the radii are for
+    half = config.for_images((1, 256, 384), (1, 256, 384))
+    assert half.search_radius == pytest.approx(config.search_radius * scale, rel=1e-12)
+    assert half.neighbourhood_radius == pytest.approx(config.neighbourhood_radius * scale, rel=1e-12)
+    assert MatchingConfig(**{**vars(half), "search_radius": 100.0, "neighbourhood_radius": 80.0}) == config  # nothing else
+    assert config.for_images((1, 512, 768)) is config
+    assert config.for_images((1, 370, 1226)) is config  # a wider image keeps them: they never grow
+    assert config.for_images((1, 256, 384), (1, 512, 768)) is config  # the set's largest image decides
+    assert MatchingConfig(reference_size=0).for_images((64, 64)) == MatchingConfig(reference_size=0)
+
+
+def test_the_pipeline_matches_a_set_of_small_images_with_shrunk_radii(monkeypatch):
+    import torchsfm.sfm.view_pairs as view_pairs
+    from torchsfm.config import Config
+
+    seen = []
+
+    def recording(image1, image2, points1, points2, config=None, predicted1=None, warp1=None):
+        seen.append(config)
+        return match_corners(image1, image2, points1, points2, config, predicted1, warp1)
+
+    monkeypatch.setattr(view_pairs, "match_corners", recording)
+    greys = [(_textured(seed, (120, 160)) * 255).to(torch.uint8) for seed in (0, 1)]
+    corners = torch.rand(40, 2, generator=torch.Generator().manual_seed(2)) * torch.tensor([130.0, 90.0]) + 15
+    view_pairs.guided_matches(greys, [corners, corners], {(0, 1): None}, Config(), lambda message: None)
+    expected = Config().matching.for_images((120, 160))
+    assert [config.search_radius for config in seen] == [pytest.approx(expected.search_radius)]
+    assert expected.search_radius < Config().matching.search_radius

@@ -97,6 +97,7 @@ def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tu
     side (:func:`~torchsfm.threads.map_in_threads`: the same matches as one after another)."""
 
     report = one_at_a_time(report)  # called from the matching threads
+    config = replace(config, matching=config.matching.for_images(*(grey.shape for grey in greys)))
 
     def match(pair: tuple[int, int]) -> tuple[Tensor, Tensor]:
         (i, j), H = pair, homographies[pair]
@@ -153,7 +154,7 @@ def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tenso
     before. Every match is consistent with F by construction. A pair keeps the guided matches
     where they are more than its verified ones. The pairs are matched side by side, as in
     :func:`guided_matches`."""
-    matching = config.matching
+    matching = config.matching.for_images(*(grey.shape for grey in greys))
 
     def rematch(pair: tuple[int, int]) -> PairMatches:
         (i, j), verified = pair, pairs[pair]

@@ -291,13 +291,13 @@ class MatchingConfig:
     def for_images(self, *shapes: tuple[int, ...]) -> MatchingConfig:
         """These settings for matching a set of images of ``shapes`` (..., H, W): ``search_radius``
         and ``neighbourhood_radius`` times √(H W) / ``reference_size`` of its largest image where
-        that is below 1 (a set from several cameras is matched at its largest image's scale, as its
-        coarse matching is). The corner budget (``harris.max_corners``) is fixed, so a disc of a fixed radius in
-        a smaller image holds more of its corners — at half the size four times the candidates and
-        strength-measure neighbours: slower, and more chance candidates for the relaxation — and
-        the scene moves across fewer pixels. Larger images keep the radii: the coarse homography
-        centres their discs, and growing them cost time without a measured gain (Herz-Jesu-P8 at
-        twice the size)."""
+        that is below 1 (a set from several cameras is matched at its largest image's scale, as
+        its coarse matching is). The corner budget (``harris.max_corners``) is fixed, so a disc of
+        a fixed radius in a smaller image holds more of its corners — at half the size four times
+        the candidates and strength-measure neighbours: slower, and more chance candidates for the
+        relaxation — and the scene moves across fewer pixels. Larger images keep the radii: the
+        coarse homography centres their discs, and growing them cost time without a measured gain
+        (Herz-Jesu-P8 at twice the size)."""
         scale = max(math.sqrt(shape[-2] * shape[-1]) for shape in shapes) / self.reference_size if self.reference_size else 1.0
         if scale >= 1:
             return self

@@ -116,7 +116,7 @@ class MatchPair(ConfiguredStage):
     def forward(self, state: PairState) -> PairState:
         state.report("matching ...")
         state.matches = match_corners(state.greys[0], state.greys[1], state.raw[0], state.raw[1],
-                                      self.config.matching.for_images(state.greys[0].shape, state.greys[1].shape))
+                                      self.config.matching.for_images(state.greys.shape))
         state.x1, state.x2 = state.points[0][state.matches.index1], state.points[1][state.matches.index2]
         (name1, name2), count = state.names, state.x1.shape[0]
         if count < 8:
@@ -142,7 +142,7 @@ class RejectMovingMatches(ConfiguredStage):
             return state
         state.report("moving objects ...")
         onward = match_corners(state.greys[1], state.greys[2], state.raw[1], state.raw[2],
-                               self.config.matching.for_images(state.greys[1].shape, state.greys[2].shape))
+                               self.config.matching.for_images(state.greys.shape))
         seen, third = chain_matches(state.matches, onward, state.points[1].shape[0])
         rejection = reject_moving_objects(state.x1[seen], state.x2[seen], state.points[2][third], config=self.config,
                                           generator=state.generator)

@@ -6,9 +6,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsfm.camera import from_homogeneous
 from torchsfm.config import LMConfig
-from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
+from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.optim.lm import LMResult, levenberg_marquardt
 
 
@@ -16,30 +15,35 @@ def refine_pose(R: Tensor, t: Tensor, X: Tensor, x: Tensor, K: Tensor, weights: 
                 ) -> tuple[Tensor, Tensor, LMResult]:
     """LM on Σ wᵢ ‖π(K (R Xᵢ + t)) - xᵢ‖² over R ← exp([ω]x) R and t.
 
-    R (B, 3, 3), t (B, 3), X (B, N, 3), x (B, N, 2), K (B, 3, 3), weights (B, N).
+    R (B, 3, 3), t (B, 3), X (B, N, 3), x (B, N, 2), K (B, 3, 3) (last row 0 0 1), weights (B, N).
+    Points are held coordinate-major, (B, 3, N): every step is a (3, 3) x (3, N) product or an
+    operation on contiguous (B, N) rows; the residuals are ordered all x, then all y.
     """
-    root = weights.sqrt()
+    root = weights.sqrt()[:, None]  # (B, 1, N)
+    points, pixels = X.transpose(-1, -2).contiguous(), x.transpose(-1, -2).contiguous()  # (B, 3, N), (B, 2, N)
 
     def unpack(state: Tensor) -> tuple[Tensor, Tensor]:
         return state[:, :9].reshape(-1, 3, 3), state[:, 9:]
 
     def residuals(state: Tensor) -> Tensor:
         R, t = unpack(state)
-        camera = X @ R.transpose(-1, -2) + t[:, None]
-        pixels = from_homogeneous(camera @ K.transpose(-1, -2))
-        return ((pixels - x) * root[..., None]).flatten(1)
+        projected = K @ (R @ points + t[..., None])  # (B, 3, N)
+        return ((projected[:, :2] / projected[:, 2:] - pixels) * root).flatten(1)
 
     def jacobian(state: Tensor) -> Tensor:
         R, t = unpack(state)
-        rotated = X @ R.transpose(-1, -2)
-        camera = rotated + t[:, None]
-        cx, cy, z = camera.unbind(-1)
-        d_normalized = torch.zeros(*camera.shape[:-1], 2, 3, dtype=X.dtype, device=X.device)
-        d_normalized[..., 0, 0], d_normalized[..., 1, 1] = 1 / z, 1 / z
-        d_normalized[..., 0, 2], d_normalized[..., 1, 2] = -cx / z**2, -cy / z**2
-        d_camera = K[:, None, :2, :2] @ d_normalized  # (B, N, 2, 3)
-        J = torch.cat([d_camera @ -skew(rotated), d_camera], dim=-1) * root[..., None, None]  # (B, N, 2, 6)
-        return J.flatten(1, 2)
+        rotated = R @ points  # (B, 3, N)
+        camera = rotated + t[..., None]
+        inverse_depth = camera[:, 2].reciprocal()
+        u, v = camera[:, 0] * inverse_depth, camera[:, 1] * inverse_depth  # normalized coordinates
+        q0, q1, q2 = rotated.unbind(1)
+        rows = []
+        for pixel_row in K[:, :2, :2].unbind(1):  # d pixel / d camera point = K₂ₓ₂ [[1, 0, -u], [0, 1, -v]] / z
+            k0, k1 = pixel_row[:, 0, None] * inverse_depth, pixel_row[:, 1, None] * inverse_depth
+            d0, d1, d2 = k0, k1, -(k0 * u + k1 * v)
+            # a rotation step ω moves the point by ω × rotated: the derivative along ω is rotated × d
+            rows.append(torch.stack([q1 * d2 - q2 * d1, q2 * d0 - q0 * d2, q0 * d1 - q1 * d0, d0, d1, d2], dim=1))
+        return (torch.stack(rows, dim=2) * root[:, None]).flatten(2).transpose(-1, -2)  # (B, 2N, 6)
 
     def retract(state: Tensor, delta: Tensor) -> Tensor:
         R, t = unpack(state)

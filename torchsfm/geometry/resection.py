@@ -5,7 +5,7 @@
   inlier sets.
 * :func:`p3p` — Grunert's solution of the calibrated minimal problem (3 pairs, up to 4 poses;
   Haralick et al. 1994), batched: the quartic's roots come from companion-matrix eigenvalues and
-  each pose from a 3-point absolute orientation.
+  each pose from the frames of the world and camera triangles.
 * :func:`pose_from_projection` — (R, t) of a DLT P once K is known.
 """
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchsfm.camera import map_by_each, to_homogeneous
+from torchsfm.camera import to_homogeneous
 from torchsfm.geometry.fundamental import smallest_right_singular_vector
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import nearest_rotation
@@ -59,12 +59,17 @@ def pose_from_projection(P: Tensor, K: Tensor, X: Tensor | None = None) -> tuple
     return nearest_rotation(M), m / scale[..., None]
 
 
-def _absolute_orientation(source: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
-    """R, t minimizing Σ‖R sᵢ + t - tᵢ‖² (Kabsch/Umeyama without scale): (*, N, 3) x2."""
-    source_mean, target_mean = source.mean(-2, keepdim=True), target.mean(-2, keepdim=True)
-    covariance = (target - target_mean).transpose(-1, -2) @ (source - source_mean)
-    R = nearest_rotation(covariance)
-    return R, (target_mean - source_mean @ R.transpose(-1, -2)).squeeze(-2)
+def _triangle_frame(points: Tensor) -> tuple[Tensor, Tensor]:
+    """Orthonormal frame of each triangle (*, 3, 3) (rows: its corners): columns the first edge's
+    direction, the in-plane normal to it, the plane's normal; and the sine of the angle at the
+    first corner (*,) (0: collinear, no frame)."""
+    edge, other = points[..., 1, :] - points[..., 0, :], points[..., 2, :] - points[..., 0, :]
+    normal = torch.linalg.cross(edge, other)
+    edge_length, normal_length = edge.norm(dim=-1, keepdim=True), normal.norm(dim=-1, keepdim=True)
+    first, third = edge / floor_tiny(edge_length), normal / floor_tiny(normal_length)
+    frame = torch.stack([first, torch.linalg.cross(third, first), third], dim=-1)
+    sine = normal_length / floor_tiny(edge_length * other.norm(dim=-1, keepdim=True))
+    return frame, sine[..., 0]
 
 
 def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -104,10 +109,16 @@ def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     depths = torch.stack([s1, u * s1, v * s1], dim=-1)  # (*, 4, 3)
     in_camera = depths[..., :, None] * bearings[..., None, :, :]  # (*, 4, 3, 3)
     usable = torch.isfinite(in_camera).flatten(-2).all(-1) & torch.isfinite(X).flatten(-2).all(-1)[..., None]
-    in_camera = torch.where(usable[..., None, None], in_camera, torch.zeros_like(in_camera))  # the SVD must not see NaN
-    R, t = _absolute_orientation(torch.nan_to_num(X)[..., None, :, :].expand_as(in_camera), in_camera)
-    valid = (finite[..., None] & usable & real & (s1_squared > 0) & (depths > 0).all(-1) & torch.isfinite(R).flatten(-2).all(-1)
-             & torch.isfinite(t).all(-1))
+    in_camera = torch.where(usable[..., None, None], in_camera, torch.zeros_like(in_camera))
+    # the camera's triangle is the world's moved rigidly (its sides are the world's by
+    # construction): R maps the world triangle's frame onto the camera triangle's, no SVD
+    world = torch.nan_to_num(X)
+    world_frame, world_sine = _triangle_frame(world)
+    camera_frame, _ = _triangle_frame(in_camera)
+    R = camera_frame @ world_frame[..., None, :, :].transpose(-1, -2)
+    t = in_camera.mean(-2) - (R @ world.mean(-2)[..., None, :, None])[..., 0]
+    valid = (finite[..., None] & usable & real & (s1_squared > 0) & (depths > 0).all(-1) & (world_sine > 1e-9)[..., None]
+             & torch.isfinite(R).flatten(-2).all(-1) & torch.isfinite(t).all(-1))
     return R, t, valid
 
 
@@ -119,9 +130,13 @@ def reprojection_errors(P: Tensor, X: Tensor, x: Tensor) -> Tensor:
 
 def reprojection_errors_of_hypotheses(P: Tensor, X: Tensor, x: Tensor) -> Tensor:
     """:func:`reprojection_errors` of H cameras P (*, H, 3, 4) on the same points X (*, N, 3),
-    x (*, N, 2) -> (*, H, N), as one (N, 4) x (4, 3H) product per problem: no per-hypothesis copy
-    of the points, and no reduction over the coordinate pair (slow in torch)."""
-    projected = map_by_each(P, X)  # (*, N, H, 3)
-    depth = projected[..., 2]
-    error = (projected[..., 0] / depth - x[..., :1]).square_() + (projected[..., 1] / depth - x[..., 1:]).square_()
-    return torch.where(depth > 0, error, torch.full_like(error, float("inf"))).transpose(-1, -2)
+    x (*, N, 2) -> (*, H, N), as one (3H, 4) x (4, N) product per problem: no per-hypothesis copy
+    of the points, and each image coordinate of every hypothesis a contiguous (H, N) block."""
+    H = P.shape[-3]
+    rows = P.transpose(-3, -2).reshape(*P.shape[:-3], 3 * H, 4)  # row j H + k: row j of P_k
+    projected = (rows @ to_homogeneous(X).transpose(-1, -2)).unflatten(-2, (3, H))  # (*, 3, H, N)
+    depth = projected[..., 2, :, :]
+    inverse_depth = depth.reciprocal()
+    error = (projected[..., 0, :, :] * inverse_depth - x[..., None, :, 0]).square_()
+    error += (projected[..., 1, :, :] * inverse_depth - x[..., None, :, 1]).square_()
+    return error.masked_fill_(depth <= 0, float("inf"))

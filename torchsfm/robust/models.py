@@ -112,7 +112,8 @@ class ResectionModel:
     Minimal solver: ``p3p`` (Grunert, 3 pairs, up to 4 poses per sample) or ``dlt`` (the
     normalized DLT on 6 pairs, then the pose nearest to K⁻¹P). Non-minimal fit: the DLT on the
     weighted pairs, then the nearest pose. Models are P = K [R | t] (3, 4); the residual is the
-    squared reprojection error in pixels² (+inf behind the camera).
+    squared reprojection error in pixels² (+inf behind the camera), in float32 with the points
+    taken about one of them (scoring only compares it with the threshold).
 
     Args:
         K: (B, 3, 3) intrinsics; solver: ``p3p`` or ``dlt``.
@@ -146,7 +147,10 @@ class ResectionModel:
         return self._projection(R, t)
 
     def residuals(self, models: Tensor, data: Tensor) -> Tensor:
-        return reprojection_errors_of_hypotheses(models, data[..., :3], data[..., 3:])
+        X = data[..., :3]
+        centre = X[..., :1, :]  # any point of the problem: about it, the scene's extent, not its offset, sets the float32 error
+        P = torch.cat([models[..., :3], models[..., 3:] + models[..., :3] @ centre[..., None, :, :].transpose(-1, -2)], dim=-1)
+        return reprojection_errors_of_hypotheses(P.float(), (X - centre).float(), data[..., 3:].float())
 
     def sampling_coordinates(self, data: Tensor) -> Tensor:
         return data[..., 3:]

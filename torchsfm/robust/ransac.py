@@ -129,6 +129,7 @@ def ransac(
     if valid is None:
         valid = torch.ones(B, N, dtype=torch.bool, device=device)
     num_valid = valid.sum(-1)
+    padded = not bool(valid.all())
     threshold_sq = config.inlier_threshold**2
     score_fn = SCORINGS[config.scoring]
     sampler = SAMPLERS[config.sampler](model.sampling_coordinates(data), valid, config.grid_size)
@@ -137,8 +138,11 @@ def ransac(
 
     def evaluate(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor) -> tuple[Tensor, Tensor]:
         """Score (P, H) and inlier mask (P, H, N) of hypotheses (P, H, *M) valid (P, H) on their rows."""
-        residuals = torch.nan_to_num(model.residuals(models, rows), nan=float("inf"))  # (P, H, N)
-        inliers = (residuals < threshold_sq) & rows_valid[:, None, :] & ok[..., None]
+        residuals = model.residuals(models, rows)  # (P, H, N); NaN is no inlier
+        inliers = residuals < threshold_sq
+        if padded:
+            inliers &= rows_valid[:, None, :]
+        # an invalid hypothesis scores -inf: it is never chosen, whatever its inliers read
         return torch.where(ok, score_fn(residuals, inliers, threshold_sq), float("-inf")), inliers
 
     def score_block(model: RobustModel, models: Tensor, ok: Tensor, rows: Tensor, rows_valid: Tensor, subset: Tensor | None,

@@ -107,13 +107,33 @@ def test_bad_input():
 
 def test_p3p_degenerate_samples_are_invalid_not_fatal():
     """Regression: coincident 3-D points once fed a non-finite companion matrix to LAPACK (a
-    segmentation fault). They come back invalid; collinear ones (a pose family) come back without
-    error, every solution marked valid finite."""
+    segmentation fault). They come back invalid, and so do collinear ones (a family of poses
+    about their line: no frame of the triangle to map), without error."""
     X = torch.tensor([[[0.0, 0.0, 5.0]] * 3, [[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [2.0, 0.0, 5.0]]], dtype=torch.float64)
     bearings = X / X.norm(dim=-1, keepdim=True)
     R, t, valid = p3p(X, bearings)
-    assert not valid[0].any()
-    assert torch.isfinite(R[valid]).all() and torch.isfinite(t[valid]).all()
+    assert not valid.any()
+    assert torch.isfinite(R).all() and torch.isfinite(t).all()
+
+
+def test_p3p_poses_are_rotations_that_map_the_sample_exactly():
+    """Each valid solution is a proper rotation (float64, 1e-12) and maps the three world points
+    onto their bearing rays, over many random noise-free samples at once: the sine of the angle to
+    the ray is below 1e-12 for the median solution and below 1e-5 for all (a root near a double
+    root of the quartic comes out of the eigenvalue solver less accurate: 2 of 423 here above 1e-9)."""
+    g = torch.Generator().manual_seed(1)
+    X = torch.randn(200, 3, 3, generator=g, **DOUBLE) + torch.tensor([0.0, 0.0, 6.0], **DOUBLE)
+    bearings = X / X.norm(dim=-1, keepdim=True)
+    R, t, valid = p3p(X, bearings)
+    assert valid.any(-1).all()
+    R, t = R[valid], t[valid]
+    eye = torch.eye(3, **DOUBLE).expand_as(R)
+    assert_close(R @ R.transpose(-1, -2), eye, rtol=0, atol=1e-12)
+    assert_close(torch.linalg.det(R), torch.ones(R.shape[0], **DOUBLE), rtol=0, atol=1e-12)
+    mapped = X[valid.nonzero()[:, 0]] @ R.transpose(-1, -2) + t[:, None]
+    directions = mapped / mapped.norm(dim=-1, keepdim=True)
+    sines = torch.linalg.cross(directions, bearings[valid.nonzero()[:, 0]]).norm(dim=-1).amax(-1)
+    assert sines.median() < 1e-12 and sines.max() < 1e-5
 
 
 def test_estimate_absolute_pose_with_half_the_points_identical():

@@ -190,3 +190,23 @@ def test_projective_resection_residuals_of_many_cameras_equal_one_at_a_time():
             assert_close(residuals[b, h, finite], expected[finite], rtol=1e-12, atol=0)
             assert bool(torch.isinf(residuals[b, h, ~finite]).all())
     assert bool(torch.isinf(residuals[1, 2, 7]))
+
+
+def test_a_nan_residual_is_never_an_inlier():
+    """A model whose residual is NaN on some rows (a degenerate projection, say): those rows are
+    outliers under every hypothesis and every scoring, and the other rows come out as without
+    them (the engine compares residuals with the threshold, where NaN is False)."""
+    scene = synthetic_two_view(200, noise=0.3, outlier_ratio=0.2, seed=3)
+    data = _data(scene)
+
+    class NaNRows(FundamentalModel):
+        def residuals(self, models, rows):
+            residuals = super().residuals(models, rows)
+            return torch.where(rows[..., None, :, 0] < 100, float("nan"), residuals)
+
+    for scoring in sorted(SCORINGS):
+        config = dataclasses.replace(RansacConfig(), scoring=scoring)
+        result = ransac(NaNRows(data), data, config, generator=torch.Generator().manual_seed(0))
+        poisoned = data[0, :, 0] < 100
+        assert poisoned.any() and not result.inlier_mask[0, poisoned].any()
+        assert result.inlier_mask[0, ~poisoned & scene.is_inlier].float().mean() > 0.9

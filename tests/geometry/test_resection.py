@@ -86,6 +86,19 @@ def test_estimate_absolute_pose_with_planted_outliers(solver):
     assert_close(pose.t, t, rtol=0, atol=1e-8)
 
 
+def test_a_scene_far_from_the_origin_is_scored_as_well():
+    """RANSAC scores in float32 with the points taken about one of them: a scene 10⁶ m from the
+    world origin (where float32 world coordinates alone would be off by ~0.06 m, ~7 px here)
+    gives the exact inliers of the same scene at the origin, its rotation to 1e-6 and its camera
+    centre to 1 mm (float64 itself keeps only ~1e-10 m per operation at 2·10⁶ m)."""
+    X, x, R, t, truth = _scene(200, outliers=0.5, seed=3)
+    offset = torch.tensor([1e6, -2e6, 5e5], **DOUBLE)
+    pose = torchsfm.estimate_absolute_pose(X + offset, x, K, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(pose.inlier_mask, truth)
+    assert_close(pose.R, R, rtol=0, atol=1e-6)
+    assert_close(-pose.R.T @ pose.t, -R.T @ t + offset, rtol=0, atol=1e-3)
+
+
 def test_noisy_pose_accuracy():
     errors = []
     for seed in range(10):

@@ -139,13 +139,13 @@ def test_p3p_poses_are_rotations_that_map_the_sample_exactly():
     bearings = X / X.norm(dim=-1, keepdim=True)
     R, t, valid = p3p(X, bearings)
     assert valid.any(-1).all()
-    R, t = R[valid], t[valid]
+    R, t, sample = R[valid], t[valid], valid.nonzero()[:, 0]  # each solution and the sample it solves
     eye = torch.eye(3, **DOUBLE).expand_as(R)
     assert_close(R @ R.transpose(-1, -2), eye, rtol=0, atol=1e-12)
     assert_close(torch.linalg.det(R), torch.ones(R.shape[0], **DOUBLE), rtol=0, atol=1e-12)
-    mapped = X[valid.nonzero()[:, 0]] @ R.transpose(-1, -2) + t[:, None]
+    mapped = X[sample] @ R.transpose(-1, -2) + t[:, None]
     directions = mapped / mapped.norm(dim=-1, keepdim=True)
-    sines = torch.linalg.cross(directions, bearings[valid.nonzero()[:, 0]]).norm(dim=-1).amax(-1)
+    sines = torch.linalg.cross(directions, bearings[sample]).norm(dim=-1).amax(-1)
     assert sines.median() < 1e-12 and sines.max() < 1e-5
 
 

@@ -109,7 +109,7 @@ def p3p(X: Tensor, bearings: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     depths = torch.stack([s1, u * s1, v * s1], dim=-1)  # (*, 4, 3)
     in_camera = depths[..., :, None] * bearings[..., None, :, :]  # (*, 4, 3, 3)
     usable = torch.isfinite(in_camera).flatten(-2).all(-1) & torch.isfinite(X).flatten(-2).all(-1)[..., None]
-    in_camera = torch.where(usable[..., None, None], in_camera, torch.zeros_like(in_camera))
+    in_camera = torch.where(usable[..., None, None], in_camera, torch.zeros_like(in_camera))  # invalid poses stay finite
     # the camera's triangle is the world's moved rigidly (its sides are the world's by
     # construction): R maps the world triangle's frame onto the camera triangle's, no SVD
     world = torch.nan_to_num(X)

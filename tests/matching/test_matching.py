@@ -87,6 +87,44 @@ def test_strength_measure_is_symmetric_in_the_two_images():
     assert_close(forward, backward, rtol=1e-12, atol=1e-12)
 
 
+def _strength_by_definition(points1, points2, candidates, config):
+    """SM of eq. 3.2.6 with the mutual-best symmetry fix, straight from the definition: every
+    candidate against every other (dense (M, M) tables)."""
+    i, j, c = candidates.index1, candidates.index2, candidates.score
+    d1, d2 = torch.cdist(points1[i], points1[i]), torch.cdist(points2[j], points2[j])
+    radius, epsilon = config.neighbourhood_radius, config.relative_distance_threshold
+    dist = (d1 + d2) / 2
+    r = (d1 - d2).abs() / dist.clamp_min(1e-12)
+    counts = (d1 < radius) & (d2 < radius) & (i[:, None] != i[None]) & (j[:, None] != j[None]) & (r < epsilon)
+    value = torch.where(counts, c[None] * torch.exp(-r / epsilon) / (1 + dist), 0.0)  # (M, M): row m, neighbour n
+
+    def best_among(partner, size):  # per (m, n): the largest value of row m over the n' sharing n's corner
+        best = value.new_zeros(value.shape[0], size).scatter_reduce(1, partner.expand_as(value), value, "amax")
+        return best.gather(1, partner.expand_as(value))
+
+    mutual = (value > 0) & (value == best_among(i[None], points1.shape[0])) & (value == best_among(j[None], points2.shape[0]))
+    return c * torch.where(mutual, value, 0.0).sum(1)
+
+
+def test_strength_measure_is_that_of_its_definition():
+    """Over a 600 × 400 px field with 1200 candidates (several row blocks, neighbours across
+    their boundaries, corners with several candidates each), SM as computed equals SM taken
+    from its definition candidate against candidate."""
+    generator = torch.Generator().manual_seed(5)
+    n = 400
+    points1 = torch.rand(n, 2, generator=generator, dtype=torch.float64) * torch.tensor([600.0, 400.0], dtype=torch.float64)
+    points2 = points1 * 1.02 + torch.tensor([12.0, -5.0], dtype=torch.float64) + torch.randn(n, 2, generator=generator, dtype=torch.float64)
+    index1 = torch.arange(n).repeat(3)
+    index2 = torch.cat([torch.arange(n), torch.randint(0, n, (2 * n,), generator=generator)])  # the true one and two decoys
+    pairs = torch.unique(index1 * n + index2)
+    candidates = CandidateMatches(index1=pairs // n, index2=pairs % n,
+                                  score=0.8 + 0.2 * torch.rand(pairs.numel(), generator=generator, dtype=torch.float64))
+    config = MatchingConfig(neighbourhood_radius=80)
+    strength = strength_measure(points1, points2, candidates, config)
+    assert (strength > 0).float().mean() > 0.5
+    assert_close(strength, _strength_by_definition(points1, points2, candidates, config), rtol=1e-12, atol=1e-12)
+
+
 def test_strength_measure_in_float32_agrees_with_float64_far_from_the_image_origin():
     """Corners a few pixels apart at x ≈ 700 px (a 768-wide image's right edge): distances taken
     as sqrt(|a|² + |b|² - 2a·b) lose their digits there in float32 (SM was 9 % off here)."""

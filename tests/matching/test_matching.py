@@ -91,7 +91,8 @@ def _strength_by_definition(points1, points2, candidates, config):
     """SM of eq. 3.2.6 with the mutual-best symmetry fix, straight from the definition: every
     candidate against every other (dense (M, M) tables)."""
     i, j, c = candidates.index1, candidates.index2, candidates.score
-    d1, d2 = torch.cdist(points1[i], points1[i]), torch.cdist(points2[j], points2[j])
+    exact = "donot_use_mm_for_euclid_dist"  # differences, not |a|² + |b|² - 2a·b: no rounding at the radius
+    d1, d2 = torch.cdist(points1[i], points1[i], compute_mode=exact), torch.cdist(points2[j], points2[j], compute_mode=exact)
     radius, epsilon = config.neighbourhood_radius, config.relative_distance_threshold
     dist = (d1 + d2) / 2
     r = (d1 - d2).abs() / dist.clamp_min(1e-12)

@@ -243,6 +243,20 @@ def test_the_default_whole_track_decision_on_kitti_clips(shared_data, clip, unde
     assert figures["undetected_rate"] <= undetected_bound and figures["wrong_rate"] <= wrong_bound, figures
 
 
+def test_the_depth_order_is_judged_once_not_by_every_refit(shared_data):
+    """KT3DMoSeg Seq095_Clip01 at seed 5: the depth order cuts its cars (they overtake the
+    camera), and the background it leaves, posed anew through the prior K in forward motion, has
+    3 of its 14 frame pairs putting 17-37 % of it beyond infinity. Judged anew by every refit the
+    depth order cut piece after piece of it, down to 138 of its 716 tracks (80.7 % of the
+    background rejected, 0.0 % of the movers kept); judged once, by the pose that cut the cars,
+    0.7 % / 15.8 % (measured: 109 background tracks were cut before, while the cars still pulled
+    the scene's fit)."""
+    clip = read_kt3dmoseg(shared_data / "kt3dmoseg_dev" / "Seq095_Clip01_Tracks")
+    result = reject_moving_objects_in_tracks(clip.tracks, clip.visible, generator=torch.Generator().manual_seed(5))
+    figures = rejection_figures(result.background_mask, clip.labels)
+    assert figures["undetected_rate"] <= 0.02 and figures["wrong_rate"] <= 0.2, figures
+
+
 def test_a_background_split_in_two_motions_is_joined_again(shared_data):
     """kanatani1 with F and affine hypotheses only (2000 each; the default's plane hypotheses keep
     its scene whole at seed 0: 0.0 / 0.0 %): the clustering splits the static scene in two

@@ -47,9 +47,9 @@ minimal-sample models:
    nothing more (:func:`settle_scene`, :func:`scene_excess`; a scene whose parallax is beyond
    its own noise but within the tracker's floor explains a track by its projective
    reconstruction too: :func:`weak_parallax`, a room's planes split apart); then again with the depth order
-   too: a track that the scene's pose puts behind both cameras is not explained
-   (:func:`beyond_infinity`: a car overtaking the camera is seen exactly like static points
-   behind it, which every epipolar and projective test accepts).
+   too: a track that the scene's pose (judged once, by the scene the residuals left) puts
+   behind both cameras is not explained (:func:`beyond_infinity`: a car overtaking the camera
+   is seen exactly like static points behind it, which every epipolar and projective test accepts).
    Where that leaves another motion both larger than the scene and covering more of the image,
    that motion is made the scene and settled in turn (:func:`rechosen_scene`: a scene first
    taken together with a large object loses the background it did not explain, and that part

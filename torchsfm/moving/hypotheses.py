@@ -43,12 +43,12 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
     rows = torch.arange(H, device=device)
     seeds = torch.randint(0, N, (H,), generator=generator, device=device)
     frames = torch.multinomial(visible[:, seeds].T.double(), m, generator=generator).sort(1).values  # (H, m)
-    seen_in_all = visible[frames].all(1)  # (H, N)
+    seen_in_all = seen_in_every(visible, frames)  # (H, N)
     local = torch.rand(H, generator=generator, device=device) < config.local_share
-    if guide is not None:
-        weight = torch.where(seen_in_all, guide[seeds], 0.0) + 1e-9 * seen_in_all  # too few similar: uniform
-        weight[rows, seeds] = 0.0
-        drawn = draws_without_replacement(weight + 1e-30, size - 1, generator)
+    if guide is not None:  # + 1e-9: uniform among the seen where too few are similar; the unseen and the seed 1e-30
+        weight = guide[seeds].add_(1e-9).masked_fill_(~seen_in_all, 1e-30)
+        weight[rows, seeds] = 1e-30
+        drawn = draws_without_replacement(weight, size - 1, generator)
         sample = torch.cat([seeds[:, None], drawn], 1)
         return frames, sample, seen_in_all.gather(1, sample).all(1)
     key = torch.rand(H, N, generator=generator, dtype=tracks.dtype, device=device)
@@ -62,6 +62,15 @@ def sample_hypotheses(tracks: Tensor, visible: Tensor, count: int, frames_per: i
     sample = torch.cat([seeds[:, None], nearest[:, 1:].gather(1, pick)], 1)
     usable = torch.isfinite(key.gather(1, sample)).all(1)
     return frames, sample, usable
+
+
+def seen_in_every(visible: Tensor, frames: Tensor) -> Tensor:
+    """(F, N) visibility, (H, m) frames -> (H, N) bool: each track seen in every frame of the
+    row, one (H, N) table per frame column (not an (H, m, N) table reduced)."""
+    seen = visible[frames[:, 0]]
+    for column in range(1, frames.shape[1]):
+        seen &= visible[frames[:, column]]
+    return seen
 
 
 def fundamental_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,
@@ -114,9 +123,11 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
             unseen = ~(visible[i] & visible[second])  # (h, N)
             per_pair[rows] = distance(block_models[rows], tracks[i], coordinates[:, second]).masked_fill_(unseen, 0.0)
         worst[start:start + block] = per_pair.view(-1, P, N).amax(1)  # residuals are >= 0 (or NaN)
-    seen_in_a_pair = (visible[a] & visible[b]).any(1)  # (H, N)
-    defined = seen_in_a_pair & usable[:, None] & torch.isfinite(worst)
-    return worst, defined.scatter(1, sample, False)
+    seen_in_a_pair = visible[a[:, 0]] & visible[b[:, 0]]  # (H, N)
+    for p in range(1, P):
+        seen_in_a_pair |= visible[a[:, p]] & visible[b[:, p]]
+    defined = torch.isfinite(worst).logical_and_(seen_in_a_pair).logical_and_(usable[:, None])
+    return worst, defined.scatter_(1, sample, False)
 
 
 def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,
@@ -151,9 +162,8 @@ def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: Segmen
         axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
         projection = (axes.reshape(-1, 2 * F) @ trajectories).view(-1, 3, N).sub_(origin_in_basis[part, :, None])
         residual[part] = (offset_norm - projection.square_().sum(1)).clamp_min(0) / m
-    seen = visible[frames].all(1)
-    defined = seen & (usable & (extent > 1.0))[:, None]
-    return residual, defined.scatter(1, sample, False)
+    defined = seen_in_every(visible, frames).logical_and_((usable & (extent > 1.0))[:, None])
+    return residual, defined.scatter_(1, sample, False)
 
 
 def homography_residuals(tracks: Tensor, visible: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator,

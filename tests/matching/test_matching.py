@@ -126,6 +126,21 @@ def test_strength_measure_is_that_of_its_definition():
     assert_close(strength, _strength_by_definition(points1, points2, candidates, config), rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("rows, tiles_per_radius", [(1, 1), (7, 1), (128, 2), (50, 3), (100_000, 1)])
+def test_strength_measure_does_not_depend_on_how_the_rows_are_blocked(rows, tiles_per_radius, monkeypatch):
+    """Blocks of 1 to all rows, tiles of a third to a whole radius: the same SM bit for bit (a
+    row's neighbours are summed in candidate order whatever block holds it)."""
+    from torchsfm.matching import strength
+
+    points1, points2, candidates, _ = _synthetic_candidates(seed=4)
+    config = MatchingConfig(neighbourhood_radius=80)
+    reference = strength_measure(points1, points2, candidates, config)
+    monkeypatch.setattr(strength, "_ROW_BLOCK", rows)
+    monkeypatch.setattr(strength, "_TILES_PER_RADIUS", tiles_per_radius)
+    assert torch.equal(strength_measure(points1, points2, candidates, config), reference)
+    assert bool((reference > 0).any())
+
+
 def test_strength_measure_in_float32_agrees_with_float64_far_from_the_image_origin():
     """Corners a few pixels apart at x ≈ 700 px (a 768-wide image's right edge): distances taken
     as sqrt(|a|² + |b|² - 2a·b) lose their digits there in float32 (SM was 9 % off here)."""

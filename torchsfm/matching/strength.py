@@ -75,10 +75,8 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         near[tile[rows, 1, None, None] + around[:, None], tile[rows, 0, None, None] + around] = True  # each row's tile and those within reach (margin-shifted)
         cols = torch.nonzero(near[tile[:, 1] + reach, tile[:, 0] + reach]).flatten()
         ci, cj = i[cols], j[cols]
-        # (R, C): d(m1i, n1k) and d(m2j, n2l) for every nearby candidate (k, l), from the differences:
-        # through |a|² + |b|² - 2a·b (cdist's default) float32 loses the digits of near neighbours
-        d1 = torch.cdist(points1[i[rows]], points1[ci], compute_mode="donot_use_mm_for_euclid_dist")
-        d2 = torch.cdist(points2[j[rows]], points2[cj], compute_mode="donot_use_mm_for_euclid_dist")
+        d1 = _distances(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
+        d2 = _distances(points2[j[rows]], points2[cj])  # and d(m2j, n2l)
         neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
                      & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))
         r_index, c_index = torch.nonzero(neighbour, as_tuple=True)  # the neighbouring pairs
@@ -99,6 +97,15 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         total = value.new_zeros(R).index_add_(0, r_index, torch.where(counted, value, 0.0))
         strength[rows] = c[rows] * total
     return strength
+
+
+def _distances(a: Tensor, b: Tensor) -> Tensor:
+    """(R, C) Euclidean distances between the points a (R, 2) and b (C, 2), from the coordinates'
+    differences: through |a|² + |b|² - 2a·b (``cdist``'s default) float32 loses the digits of near
+    neighbours, and ``cdist`` from the differences takes 3x as long."""
+    dx = a[:, 0, None] - b[:, 0]
+    dy = a[:, 1, None] - b[:, 1]
+    return dx.mul_(dx).addcmul_(dy, dy).sqrt_()
 
 
 def relaxation(candidates: CandidateMatches, strength: Tensor, num_points: tuple[int, int],

@@ -32,7 +32,7 @@ from torchsfm.config import MatchingConfig
 from torchsfm.matching.ncc import CandidateMatches
 
 _ROW_BLOCK = 128
-_TILES_PER_RADIUS = 2  # Herz-Jesu-P8's 23 guided pairs: 112 M row-column entries with one tile per radius in rows, 79 M with this
+_TILES_PER_RADIUS = 2  # Herz-Jesu-P8's 23 guided pairs: 112 M row x column entries with 1 (row-major, blocks of 256), 79 M with 2 in Z order
 
 
 def z_order(tile: Tensor) -> Tensor:

@@ -35,7 +35,7 @@ _ROW_BLOCK = 128
 _TILES_PER_RADIUS = 2  # Herz-Jesu-P8's 23 guided pairs: 112 M row x column entries with 1 (row-major, blocks of 256), 79 M with 2 in Z order
 
 
-def z_order(tile: Tensor) -> Tensor:
+def _z_order(tile: Tensor) -> Tensor:
     """(M,) Morton keys of (M, 2) non-negative integer (x, y) tiles: the bits of x and y
     interleaved, so that tiles close in the order are close in the plane."""
     key = torch.zeros_like(tile[:, 0])
@@ -66,7 +66,7 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     # whatever the block, so its sum below is the same.
     reach = _TILES_PER_RADIUS
     tile = torch.div(points1[i] - points1[i].amin(0), config.neighbourhood_radius / reach, rounding_mode="floor").long()  # (M, 2)
-    order = torch.argsort(z_order(tile), stable=True)
+    order = torch.argsort(_z_order(tile), stable=True)
     grid_shape = (int(tile[:, 1].max()) + 1 + 2 * reach, int(tile[:, 0].max()) + 1 + 2 * reach)  # reach tiles of margin on each side
     around = torch.arange(2 * reach + 1, device=points1.device)
     for start in range(0, M, _ROW_BLOCK):

@@ -18,7 +18,7 @@ LAYERS = [
     {"robust", "optim"},
     {"features", "matching"},
     {"geometry", "camera", "images"},
-    {"config", "errors", "validation", "numerics", "pipeline", "threads", "io.atomic", "io.exif"},
+    {"config", "errors", "validation", "numerics", "pipeline", "threads", "inference", "io.atomic", "io.exif"},
 ]
 
 

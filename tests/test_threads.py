@@ -65,3 +65,12 @@ def test_one_at_a_time_serializes_the_calls(two_threads):
     locked = one_at_a_time(report)
     assert map_in_threads(locked, [f"m{k}" for k in range(40)]) == [f"m{k}" for k in range(40)]
     assert max(overlaps) == 1
+
+
+def test_the_threads_run_in_the_callers_inference_mode(two_threads):
+    def mode(_: int) -> bool:
+        return torch.is_inference_mode_enabled()
+
+    with torch.inference_mode():
+        assert map_in_threads(mode, range(4)) == [True] * 4
+    assert map_in_threads(mode, range(4)) == [False] * 4

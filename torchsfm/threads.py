@@ -22,16 +22,23 @@ def map_in_threads(function: Callable[[Item], Result], items: Iterable[Item]) ->
     on a few thousand elements each) the operations are too small to share out, so one thread per
     problem keeps the cores busy where the intra-op threads would wait on Python. The results are
     those of the loop, in the items' order, whatever the threads' timing; the first exception
-    raised is raised here. With one thread: the plain loop."""
+    raised is raised here. The threads run in the caller's inference mode (a thread-local
+    setting that a new thread would not inherit). With one thread: the plain loop."""
     items = list(items)
     workers = min(torch.get_num_threads(), len(items))
     if workers <= 1:
         return [function(item) for item in items]
+    inference = torch.is_inference_mode_enabled()
+
+    def in_callers_mode(item: Item) -> Result:
+        with torch.inference_mode(inference):
+            return function(item)
+
     intra_op = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         with ThreadPoolExecutor(workers) as pool:
-            return list(pool.map(function, items))
+            return list(pool.map(in_callers_mode, items))
     finally:
         torch.set_num_threads(intra_op)
 

@@ -31,6 +31,7 @@ from torchsfm.config import ChessboardConfig
 from torchsfm.errors import InputError
 from torchsfm.features.filters import sobel_gradients, sobel_second_derivatives, window_maximum
 from torchsfm.images import check_image, to_grey
+from torchsfm.inference import without_autograd
 
 NEIGHBOURS = ((1, 0), (-1, 0), (0, 1), (0, -1))
 
@@ -233,6 +234,7 @@ def refine_corners(grey: Tensor, corners: Tensor, half_window: int, iterations: 
     return q + low.to(q.dtype)
 
 
+@without_autograd
 def detect_chessboard(image: Tensor, pattern: tuple[int, int], config: ChessboardConfig | None = None) -> ChessboardDetection:
     """Find the (cols, rows) inner corners of a chessboard in a (3 or 1, H, W) image.
 

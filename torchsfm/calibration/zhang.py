@@ -22,6 +22,7 @@ from torchsfm.errors import DegenerateConfigurationError, InputError, NotEnoughD
 from torchsfm.geometry.homography import homography_dlt
 from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, skew
+from torchsfm.inference import without_autograd
 from torchsfm.optim.lm import levenberg_marquardt
 from torchsfm.validation import check_finite, check_floating, check_shapes
 
@@ -203,6 +204,7 @@ def _projection_jacobian(K: Tensor, distortion: Tensor, R: Tensor, t: Tensor, bo
     return torch.cat([intrinsics, poses.flatten(-2)], dim=-1).reshape(V * N * 2, 6 + 6 * V)
 
 
+@without_autograd
 def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationConfig | None = None) -> Calibration:
     """Zhang's calibration from V views of a planar target.
 

@@ -12,6 +12,7 @@ from torchsfm.config import Config
 from torchsfm.errors import NotEnoughDataError, ShapeError
 from torchsfm.estimators.resection_refinement import refine_pose
 from torchsfm.geometry.resection import reprojection_errors
+from torchsfm.inference import without_autograd
 from torchsfm.robust.models import ResectionModel
 from torchsfm.robust.ragged import fill_padding
 from torchsfm.robust.ransac import ransac
@@ -34,6 +35,7 @@ class AbsolutePose:
     success: Tensor
 
 
+@without_autograd
 def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | None = None, config: Config | None = None,
                            generator: torch.Generator | None = None) -> AbsolutePose:
     """Robust resection of a calibrated camera: RANSAC (P3P or DLT minimal samples, bucketed,

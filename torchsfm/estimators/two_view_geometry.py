@@ -20,6 +20,7 @@ from torchsfm.geometry.essential import essential_from_fundamental
 from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
 from torchsfm.estimators.fundamental_refinement import refine_fundamental
 from torchsfm.geometry.triangulation import triangulate_points
+from torchsfm.inference import without_autograd
 from torchsfm.robust.models import EssentialModel, FundamentalModel
 from torchsfm.estimators.calibrated_pose import calibrated_pose
 from torchsfm.robust.ransac import ransac
@@ -140,6 +141,7 @@ def _robust_essential(x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, config: Co
     return F, found.inlier_mask & success[:, None], found.num_trials, success
 
 
+@without_autograd
 def estimate_fundamental(
     x1: Tensor, x2: Tensor, *, valid: Tensor | None = None, config: Config | None = None,
     generator: torch.Generator | None = None
@@ -176,6 +178,7 @@ def estimate_fundamental(
     return _unbatch(result) if unbatched else result
 
 
+@without_autograd
 def estimate_relative_pose(
     x1: Tensor,
     x2: Tensor,

@@ -36,6 +36,7 @@ from torch import Tensor
 from torchsfm.config import Config, MovingObjectsConfig
 from torchsfm.errors import NotEnoughDataError
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
+from torchsfm.inference import without_autograd
 from torchsfm.moving.parallax import PlaneParallax, plane_parallax_batch
 from torchsfm.moving.rigidity import rigidity_residuals
 from torchsfm.robust.ragged import pad_rows
@@ -181,6 +182,7 @@ def _votes(supports: Tensor, warped: Tensor, parallax: Tensor, config: MovingObj
     return kept.sum(0)
 
 
+@without_autograd
 def reject_moving_objects(x0: Tensor, x1: Tensor, x2: Tensor, *, config: Config | None = None,
                           generator: torch.Generator | None = None) -> MovingObjectRejection:
     """Keep the static background of N points tracked in three frames (IMOR + RANSAC, §5.4).

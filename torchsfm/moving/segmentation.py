@@ -89,6 +89,7 @@ from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
 from torchsfm.errors import NotEnoughDataError
+from torchsfm.inference import without_autograd
 from torchsfm.moving.affinity import explained_tracks, preference_similarity, strongest_links
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
 from torchsfm.moving.imor import MIN_VECTORS
@@ -131,6 +132,7 @@ class MotionSegmentation:
     pieces: Tensor
 
 
+@without_autograd
 def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: SegmentationConfig | None = None,
                     num_motions: int | None = None, generator: torch.Generator | None = None) -> MotionSegmentation:
     """Segment N tracks over F frames into rigid motions (see the module docstring).

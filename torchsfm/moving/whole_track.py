@@ -31,6 +31,7 @@ from torch import Tensor
 
 from torchsfm.config import Config
 from torchsfm.errors import ShapeError, TorchSfmError
+from torchsfm.inference import without_autograd
 from torchsfm.moving.imor import MIN_VECTORS, MovingObjectRejection, reject_moving_objects_in_triplets
 from torchsfm.moving.scene import grid_coverage
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
@@ -75,6 +76,7 @@ class TrackRejection:
     segmentation: MotionSegmentation | None = None
 
 
+@without_autograd
 def reject_moving_objects_in_tracks(tracks: Tensor, visible: Tensor | None = None, *,
                                     triplets: list[tuple[int, int, int]] | None = None, config: Config | None = None,
                                     generator: torch.Generator | None = None) -> TrackRejection:

@@ -36,6 +36,7 @@ from torch import Tensor
 from torchsfm.config import BundleAdjustmentConfig
 from torchsfm.errors import InputError
 from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
+from torchsfm.inference import without_autograd
 from torchsfm.optim.lm import minimize
 from torchsfm.validation import check_finite, check_shapes
 from torchsfm.numerics import floor_tiny
@@ -555,6 +556,7 @@ def intrinsics_covariance(problem: BundleProblem, *, config: BundleAdjustmentCon
     return sigma_sq * covariance if int(info) == 0 else None
 
 
+@without_autograd
 def bundle_adjust(problem: BundleProblem, *, config: BundleAdjustmentConfig | None = None) -> BundleResult:
     """Minimize the (robustified) reprojection error over cameras and points.
 

@@ -23,6 +23,7 @@ from torchsfm.camera import check_intrinsics, to_homogeneous
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, TorchSfmError
 from torchsfm.geometry.projective import triangulate_multiview
+from torchsfm.inference import without_autograd
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.reconstruction import MovingObject, Reconstruction
@@ -46,6 +47,7 @@ def frame_pairs(num_frames: int) -> list[tuple[int, int]]:
     return pairs
 
 
+@without_autograd
 def reconstruct_tracks(tracks: Tensor, K: Tensor, visible: Tensor | None = None, *, config: Config | None = None,
                        generator: torch.Generator | None = None, progress: Progress | None = None) -> Reconstruction:
     """Camera poses and a 3-D point per track from tracked pixels.
@@ -122,6 +124,7 @@ class MotionModels:
     failed: dict[int, str] = field(default_factory=dict)
 
 
+@without_autograd
 def reconstruct_motions(tracks: Tensor, K: Tensor, visible: Tensor | None = None, *, config: Config | None = None,
                         num_motions: int | None = None, generator: torch.Generator | None = None) -> MotionModels:
     """Segment (F, N, 2) tracks into rigid motions and reconstruct each with K (3, 3) or (F, 3,

@@ -21,6 +21,7 @@ from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import (check_mask, is_grey_bytes, one_camera, read_image, read_mask, reduce_image, reduce_mask, sizes_named,
                              to_grey_bytes)
+from torchsfm.inference import without_autograd
 from torchsfm.io.exif import exif_focal_pixels
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.sfm.from_tracks import ReconstructObjects
@@ -43,6 +44,7 @@ def shared_focal(focals: list[float | None]) -> float | None:
     return float(values.median()) if float(values.max() / values.min()) <= 1 + EXIF_AGREEMENT else None
 
 
+@without_autograd
 def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, distortion: Tensor | None = None,
                 names: list[str] | None = None, config: Config | None = None,
                 generator: torch.Generator | None = None, progress: Progress | None = None,

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from torchsfm.config import BundleAdjustmentConfig
 from torchsfm.errors import InputError
-from torchsfm.geometry.rotation import axis_angle_to_rotation, skew
+from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.inference import without_autograd
 from torchsfm.optim.lm import minimize
 from torchsfm.validation import check_finite, check_shapes
@@ -159,53 +159,74 @@ class BundleResult:
     timings: dict[str, float] = field(default_factory=dict)
 
 
+def _products(A: Tensor, B: Tensor) -> Tensor:
+    """One small matrix product per observation, coordinate-major: A (a, k, O), B (k, b, O) ->
+    (a, b, O) with [:, :, o] = A[:, :, o] B[:, :, o]; k multiply-adds, each along the O
+    observations (a batched GEMM of O blocks of 2 or 3 rows ran 4-8x slower)."""
+    out = A[:, 0, None] * B[0, None]
+    for k in range(1, A.shape[1]):
+        out.addcmul_(A[:, k, None], B[k, None])
+    return out
+
+
+def _camera_points(problem: BundleProblem, R: Tensor, t: Tensor, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Every observation's camera rotation (3, 3, O), its point rotated into the camera, R X
+    (3, O), and the point in the camera frame, R X + t (3, O): coordinate-major."""
+    c, p = problem.camera_index, problem.point_index
+    rotation = R.reshape(-1, 9).T[:, c].reshape(3, 3, -1)
+    X = points.T[:, p]
+    rotated = _products(rotation, X[:, None])[:, 0]
+    return rotation, rotated, rotated + t.T[:, c]
+
+
 def _project(problem: BundleProblem, R: Tensor, t: Tensor, intrinsics: Tensor, points: Tensor, jacobians: bool = False,
              radial: Tensor | float = 0.0):
-    """Predictions (O, 2) and, on request, d prediction / d(camera tangent) (O, 2, dc) and
-    d prediction / d point (O, 2, 3); ``radial``: the pinhole cameras' shared k1 (a 0-d tensor
-    while it is adjusted)."""
-    c, p = problem.camera_index, problem.point_index
-    rotated = (R[c] @ points[p][..., None]).squeeze(-1)  # R X: (O, 3)
-    camera_point = rotated + t[c]
-    x, y, z = camera_point.unbind(-1)
+    """Predictions (O, 2) and, on request, d prediction / d(camera tangent) (2, dc, O) and
+    d prediction / d point (2, 3, O): the derivatives coordinate-major, row i of an
+    observation's 2 × n block in [i, :, o] (see :func:`_products`); ``radial``: the pinhole
+    cameras' shared k1 (a 0-d tensor while it is adjusted)."""
+    c = problem.camera_index
+    rotation, rotated, camera_point = _camera_points(problem, R, t, points)
+    inverse_z = 1 / camera_point[2]
+    zero = torch.zeros_like(inverse_z)
     if problem.camera_model == "pinhole":
-        K = intrinsics[c]
-        normalized = camera_point[:, :2] / z[:, None]
+        fx, shear, cx, fy, cy = intrinsics.reshape(-1, 9)[:, [0, 1, 2, 4, 5]].T[:, c]
+        normalized = camera_point[:2] * inverse_z  # (2, O)
         distorted = isinstance(radial, Tensor) or radial != 0
         if distorted:
-            r2 = normalized.square().sum(-1, keepdim=True)
+            r2 = normalized[0].square() + normalized[1].square()
             seen = normalized * (1 + radial * r2)
         else:
             seen = normalized
-        prediction = (K[:, :2, :2] @ seen[..., None]).squeeze(-1) + K[:, :2, 2]
+        prediction = torch.stack([fx * seen[0] + shear * seen[1] + cx, fy * seen[1] + cy], dim=-1)
         if not jacobians:
             return prediction, None, None
-        d_normalized = torch.zeros(x.shape[0], 2, 3, dtype=x.dtype, device=x.device)
-        d_normalized[:, 0, 0], d_normalized[:, 1, 1] = 1 / z, 1 / z
-        d_normalized[:, 0, 2], d_normalized[:, 1, 2] = -x / z**2, -y / z**2
+        d_normalized = torch.stack([torch.stack([inverse_z, zero, -normalized[0] * inverse_z]),
+                                    torch.stack([zero, inverse_z, -normalized[1] * inverse_z])])  # (2, 3, O)
         if distorted:  # d seen / d normalized = (1 + k1 r²) I + 2 k1 n nᵀ
-            eye = torch.eye(2, dtype=x.dtype, device=x.device)
-            d_seen = (1 + radial * r2)[..., None] * eye + 2 * radial * normalized[:, :, None] * normalized[:, None, :]
-            d_normalized = d_seen @ d_normalized
-        d_camera_point = K[:, :2, :2] @ d_normalized  # (O, 2, 3)
-        d_camera = torch.cat([d_camera_point @ -skew(rotated), d_camera_point], dim=-1)  # δω (left), δt
-        return prediction, d_camera, d_camera_point @ R[c]
-    f, k1, k2 = intrinsics[c].unbind(-1)
-    projected = -camera_point[:, :2] / z[:, None]  # (O, 2)
-    r2 = projected.square().sum(-1)
-    distortion = 1 + k1 * r2 + k2 * r2 * r2
-    prediction = (f * distortion)[:, None] * projected
-    if not jacobians:
-        return prediction, None, None
-    d_projected = torch.zeros(x.shape[0], 2, 3, dtype=x.dtype, device=x.device)
-    d_projected[:, 0, 0], d_projected[:, 1, 1] = -1 / z, -1 / z
-    d_projected[:, 0, 2], d_projected[:, 1, 2] = x / z**2, y / z**2
-    eye = torch.eye(2, dtype=x.dtype, device=x.device)
-    d_prediction = f[:, None, None] * (distortion[:, None, None] * eye + (2 * k1 + 4 * k2 * r2)[:, None, None] * projected[:, :, None] * projected[:, None, :])
-    d_camera_point = d_prediction @ d_projected  # (O, 2, 3)
-    d_intrinsics = torch.stack([distortion[:, None] * projected, (f * r2)[:, None] * projected, (f * r2 * r2)[:, None] * projected], dim=-1)
-    d_camera = torch.cat([d_camera_point @ -skew(rotated), d_camera_point, d_intrinsics], dim=-1)
-    return prediction, d_camera, d_camera_point @ R[c]
+            outer = 2 * radial * normalized[:, None] * normalized[None]  # (2, 2, O)
+            d_seen = outer + (1 + radial * r2) * torch.eye(2, dtype=r2.dtype, device=r2.device)[..., None]
+            d_normalized = _products(d_seen, d_normalized)
+        d_camera_point = torch.stack([fx * d_normalized[0] + shear * d_normalized[1], fy * d_normalized[1]])  # K₂ₓ₂ · (2, 3, O)
+        d_intrinsics = d_camera_point[:, :0]
+    else:
+        f, k1, k2 = intrinsics.T[:, c]
+        projected = -camera_point[:2] * inverse_z  # (2, O)
+        r2 = projected[0].square() + projected[1].square()
+        distortion = 1 + k1 * r2 + k2 * r2 * r2
+        prediction = ((f * distortion) * projected).T
+        if not jacobians:
+            return prediction, None, None
+        d_projected = torch.stack([torch.stack([-inverse_z, zero, -projected[0] * inverse_z]),
+                                   torch.stack([zero, -inverse_z, -projected[1] * inverse_z])])  # (2, 3, O)
+        outer = (2 * k1 + 4 * k2 * r2) * projected[:, None] * projected[None]  # (2, 2, O)
+        d_prediction = f * (outer + distortion * torch.eye(2, dtype=r2.dtype, device=r2.device)[..., None])
+        d_camera_point = _products(d_prediction, d_projected)
+        d_intrinsics = torch.stack([distortion, f * r2, f * r2 * r2])[None] * projected[:, None]  # d / d(f, k1, k2): (2, 3, O)
+    # δω (left): d camera point = δω × R X, so row m of d_camera_point gives (R X × m)ᵀ; δt: the identity
+    d_rotation = torch.linalg.cross(rotated.expand_as(d_camera_point), d_camera_point, dim=1)
+    d_camera = torch.cat([d_rotation, d_camera_point, d_intrinsics], dim=1)
+    return prediction, d_camera, _products(d_camera_point, rotation)
 
 
 def _loss(squared: Tensor, kind: str, scale: float) -> tuple[Tensor, Tensor]:
@@ -224,33 +245,35 @@ class _SchurLinearization:
 
     def __init__(self, problem: "_BundleLM", d_camera: Tensor, d_point: Tensor, residuals: Tensor, weights: Tensor,
                  d_intrinsics: Tensor | None = None) -> None:
+        """The blocks from the coordinate-major derivatives of :func:`_project` — d_camera
+        (2, dc, O), d_point (2, 3, O), the shared intrinsics' d_intrinsics (2, m, O) — the (O, 2)
+        residuals and the (O,) loss weights. W and Y (:meth:`_camera_system`) stay
+        coordinate-major, (dc, 3, O)."""
         self.problem = problem
         bundle = problem.bundle
-        root = weights.sqrt()[:, None, None]
-        Jc, Jp = d_camera * root, d_point * root  # (O, 2, dc), (O, 2, 3)
-        Jc = Jc * problem.free[bundle.camera_index][:, None, :]  # fixed cameras: no columns
-        r = residuals * root[..., 0]
+        root = weights.sqrt()
+        Jc = d_camera * (problem.free_observations * root)  # fixed cameras: no columns
+        Jp, r = d_point * root, residuals.T * root  # (2, 3, O), (2, O)
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
-        # U: one GEMM per camera over its observations; V: one batched product per track length
-        by_camera = torch.split(Jc[problem.camera_order].reshape(-1, dc), problem.camera_rows)
-        self.U = torch.stack([rows.T @ rows for rows in by_camera])
-        self.V = torch.zeros(P, 3, 3, dtype=r.dtype, device=r.device)
-        for observations in problem.track_groups:
-            rows = Jp[observations].reshape(observations.shape[0], -1, 3)  # (P_n, 2 n, 3)
-            self.V[bundle.point_index[observations[:, 0]]] = rows.transpose(1, 2) @ rows
-        self.W = Jc.transpose(1, 2) @ Jp  # (O, dc, 3)
-        g_camera = torch.zeros(C, dc, dtype=r.dtype, device=r.device).index_add_(0, bundle.camera_index, -(Jc.transpose(1, 2) @ r[..., None])[..., 0])
-        g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, bundle.point_index, -(Jp.transpose(1, 2) @ r[..., None])[..., 0])
+        c, p = bundle.camera_index, bundle.point_index
+        Jc_t = Jc.transpose(0, 1)  # (dc, 2, O)
+        # U: one GEMM per camera over its observations' 2 rows each (columns in camera order)
+        by_camera = Jc[:, :, problem.camera_order].permute(1, 2, 0).reshape(dc, -1)
+        self.U = torch.stack([columns @ columns.T for columns in torch.split(by_camera, problem.camera_rows, dim=1)])
+        self.V = torch.zeros(P, 9, dtype=r.dtype, device=r.device).index_add_(0, p, _products(Jp.transpose(0, 1), Jp).reshape(9, -1).T).reshape(P, 3, 3)
+        self.W = _products(Jc_t, Jp)  # (dc, 3, O)
+        g_camera = torch.zeros(C, dc, dtype=r.dtype, device=r.device).index_add_(0, c, -_products(Jc_t, r[:, None])[:, 0].T)
+        g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, p, -_products(Jp.transpose(0, 1), r[:, None])[:, 0].T)
         self.gradient = torch.cat([g_camera.flatten(), g_point.flatten()])[None]
         self.diagonal = torch.cat([torch.diagonal(self.U, dim1=1, dim2=2).flatten(), torch.diagonal(self.V, dim1=1, dim2=2).flatten()])[None]
         self.border = None
         if d_intrinsics is not None:  # the shared intrinsics' blocks: with the cameras, the points, themselves
-            Jk = d_intrinsics * root  # (O, 2, m)
-            m = Jk.shape[-1]
-            E = torch.zeros(C, dc, m, dtype=r.dtype, device=r.device).index_add_(0, bundle.camera_index, Jc.transpose(1, 2) @ Jk)
-            Wk = torch.zeros(P, m, 3, dtype=r.dtype, device=r.device).index_add_(0, bundle.point_index, Jk.transpose(1, 2) @ Jp)
-            G = (Jk.transpose(1, 2) @ Jk).sum(0)
-            g_k = -(Jk.transpose(1, 2) @ r[..., None])[..., 0].sum(0)
+            Jk = d_intrinsics * root  # (2, m, O)
+            m = Jk.shape[1]
+            E = torch.zeros(C, dc, m, dtype=r.dtype, device=r.device).index_add_(0, c, _products(Jc_t, Jk).permute(2, 0, 1))
+            Wk = torch.zeros(P, m, 3, dtype=r.dtype, device=r.device).index_add_(0, p, _products(Jk.transpose(0, 1), Jp).permute(2, 0, 1))
+            G = Jk[0] @ Jk[0].T + Jk[1] @ Jk[1].T
+            g_k = -_products(Jk.transpose(0, 1), r[:, None])[:, 0].sum(-1)
             self.border = (E, Wk, G)
             self.gradient = torch.cat([self.gradient, g_k[None]], dim=1)
             self.diagonal = torch.cat([self.diagonal, torch.diagonal(G)[None]], dim=1)
@@ -271,11 +294,11 @@ class _SchurLinearization:
         g_camera = self.gradient[0, : C * dc].reshape(C, dc)
         g_point = self.gradient[0, C * dc:C * dc + 3 * P].reshape(P, 3)
         c, p = bundle.camera_index, bundle.point_index
-        Y = self.W @ V_inverse[p]  # (O, dc, 3) = W V*⁻¹
-        rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, (Y @ g_point[p][..., None])[..., 0])
+        Y = _products(self.W, V_inverse.reshape(P, 9).T[:, p].reshape(3, 3, -1))  # (dc, 3, O) = W V*⁻¹
+        rhs = g_camera - torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, _products(Y, g_point.T[:, None, p])[:, 0].T)
         if self.border is not None:  # one more right-hand side per intrinsic: S_ck = E - Σ W V*⁻¹ Wkᵀ
             E, Wk, _ = self.border
-            rhs = torch.cat([rhs[..., None], E - torch.zeros_like(E).index_add_(0, c, Y @ Wk[p].transpose(1, 2))], dim=-1)
+            rhs = torch.cat([rhs[..., None], E - torch.zeros_like(E).index_add_(0, c, _products(Y, Wk.permute(2, 1, 0)[:, :, p]).permute(2, 0, 1))], dim=-1)
         if problem.config.linear_solver == "dense" or (problem.config.linear_solver == "auto" and C * dc <= problem.config.dense_limit):
             solution, ok = self._dense(U, V_inverse, Y, rhs)
         else:
@@ -297,7 +320,7 @@ class _SchurLinearization:
             delta_intrinsics, ok = self._intrinsics_step(rhs, solution, V_inverse, g_point, damping[C * dc + 3 * P:], ok)
             delta_camera = solution[..., 0] - solution[..., 1:] @ delta_intrinsics
             back = g_point - (self.border[1].transpose(1, 2) @ delta_intrinsics)
-        back = back - torch.zeros_like(g_point).index_add_(0, p, (self.W.transpose(1, 2) @ delta_camera[c][..., None])[..., 0])
+        back = back - torch.zeros_like(g_point).index_add_(0, p, _products(self.W.transpose(0, 1), delta_camera.T[:, None, c])[:, 0].T)
         delta_point = (V_inverse @ back[..., None])[..., 0]
         parts = [delta_camera.flatten(), delta_point.flatten()] + ([] if delta_intrinsics is None else [delta_intrinsics])
         return torch.cat(parts)[None], ok[None]
@@ -357,8 +380,8 @@ class _SchurLinearization:
             reduction = self._camera_pair_blocks(Y)
         else:
             Wt, VWt, rows = problem.dense_buffers()  # (P, 3, C, dc) each, reused across iterations
-            Wt.view(-1, dc).index_copy_(0, rows, self.W.transpose(1, 2).reshape(-1, dc))  # each (point, camera) block is observed once
-            VWt.view(-1, dc).index_copy_(0, rows, Y.transpose(1, 2).reshape(-1, dc))  # V*⁻¹ Wᵀ, only the observed blocks
+            Wt.view(-1, dc).index_copy_(0, rows, self.W.permute(2, 1, 0).reshape(-1, dc))  # each (point, camera) block is observed once
+            VWt.view(-1, dc).index_copy_(0, rows, Y.permute(2, 1, 0).reshape(-1, dc))  # V*⁻¹ Wᵀ, only the observed blocks
             reduction = Wt.reshape(3 * P, C * dc).T @ VWt.reshape(3 * P, C * dc)
         S = reduction.neg_()  # S = U* - reduction, in place: the (C dc)² matrix is the solver's largest buffer
         diagonal = S.view(C, dc, C, dc).diagonal(dim1=0, dim2=2)  # (dc, dc, C): the camera blocks
@@ -370,7 +393,7 @@ class _SchurLinearization:
         return torch.cholesky_solve(columns, L).reshape(rhs.shape), torch.tensor(True, device=U.device)
 
     def _camera_pair_blocks(self, Y: Tensor) -> Tensor:
-        """Σ_p W_p V*_p⁻¹ W_pᵀ (C dc, C dc) from Y = W V*⁻¹ (O, dc, 3), block by block: block
+        """Σ_p W_p V*_p⁻¹ W_pᵀ (C dc, C dc) from Y = W V*⁻¹ (dc, 3, O), block by block: block
         (c_a, c_b) = Σ Y_a W_bᵀ over the pairs of observations a, b of one point in cameras c_a,
         c_b. Points in groups of equal track length n, ``BLOCK_CHUNK_NUMBERS`` numbers at a time:
         one batched product (n dc × 3)(3 × n dc) per chunk gives every camera-pair block of its
@@ -379,13 +402,14 @@ class _SchurLinearization:
         problem, bundle = self.problem, self.problem.bundle
         C, dc = bundle.num_cameras, problem.dc
         blocks = torch.zeros(C * C, dc, dc, dtype=Y.dtype, device=Y.device)
+        Y_blocks, W_blocks = Y.permute(2, 0, 1), self.W.permute(2, 0, 1)  # (O, dc, 3) views
         for observations in problem.track_groups:  # (P_n, n) observation ids
             n = observations.shape[1]
             points_at_a_time = max(1, BLOCK_CHUNK_NUMBERS // (n * n * dc * dc))
             for start in range(0, observations.shape[0], points_at_a_time):
                 part = observations[start:start + points_at_a_time]
                 cameras = bundle.camera_index[part]  # (p, n)
-                products = Y[part].reshape(-1, n * dc, 3) @ self.W[part].reshape(-1, n * dc, 3).transpose(1, 2)
+                products = Y_blocks[part].reshape(-1, n * dc, 3) @ W_blocks[part].reshape(-1, n * dc, 3).transpose(1, 2)
                 blocks.index_add_(0, (cameras[:, :, None] * C + cameras[:, None, :]).flatten(),
                                   products.view(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc))
         return blocks.view(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
@@ -401,11 +425,11 @@ class _SchurLinearization:
         c, p = bundle.camera_index, bundle.point_index
 
         def apply(x: Tensor) -> Tensor:  # S x for x (C, dc)
-            through_points = torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, (self.W.transpose(1, 2) @ x[c][..., None])[..., 0])
-            back = torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, (Y @ through_points[p][..., None])[..., 0])
+            through_points = torch.zeros(P, 3, dtype=U.dtype, device=U.device).index_add_(0, p, _products(self.W.transpose(0, 1), x.T[:, None, c])[:, 0].T)
+            back = torch.zeros(C, dc, dtype=U.dtype, device=U.device).index_add_(0, c, _products(Y, through_points.T[:, None, p])[:, 0].T)
             return (U @ x[..., None])[..., 0] - back
 
-        diagonal_blocks = U - torch.zeros(C, dc, dc, dtype=U.dtype, device=U.device).index_add_(0, c, Y @ self.W.transpose(1, 2))
+        diagonal_blocks = U - torch.zeros(C, dc, dc, dtype=U.dtype, device=U.device).index_add_(0, c, _products(Y, self.W.transpose(0, 1)).permute(2, 0, 1))
         preconditioner = torch.linalg.inv(diagonal_blocks)
         x = torch.zeros_like(rhs)
         residual = rhs.clone()
@@ -452,6 +476,7 @@ class _BundleLM:
         self.dc = CAMERA_DOF[bundle.camera_model]
         self.state_size = 12 if bundle.camera_model == "pinhole" else 15
         self.free = (~bundle.fixed_cameras)[:, None].expand(-1, self.dc).to(bundle.points.dtype)
+        self.free_observations = self.free.T[:, bundle.camera_index]  # (dc, O): 0 in a fixed camera's rows
         self.track_groups = track_groups(bundle.point_index, bundle.num_points)
         self._buffers: tuple[Tensor, Tensor, Tensor] | None = None
         self.camera_order = torch.argsort(bundle.camera_index, stable=True)
@@ -504,15 +529,16 @@ class _BundleLM:
         if jacobians and self.bundle.shared_intrinsics:
             # d(u, v) / d(fx, fy, cx, cy, k1) = [[sx, 0, 1, 0, fx nx r²], [0, sy, 0, 1, fy ny r²]], s = n (1 + k1 r²)
             K = intrinsics[0]
-            seen = (prediction - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]])
-            d_intrinsics = torch.zeros(prediction.shape[0], 2, 5, dtype=prediction.dtype, device=prediction.device)
-            d_intrinsics[:, 0, 0], d_intrinsics[:, 1, 1] = seen[:, 0], seen[:, 1]
-            d_intrinsics[:, 0, 2] = d_intrinsics[:, 1, 3] = 1
+            focal = torch.stack([K[0, 0], K[1, 1]])[:, None]
+            seen = (prediction.T - K[:2, 2, None]) / focal  # (2, O)
+            d_intrinsics = torch.zeros(2, 5, prediction.shape[0], dtype=prediction.dtype, device=prediction.device)
+            d_intrinsics[0, 0], d_intrinsics[1, 1] = seen[0], seen[1]
+            d_intrinsics[0, 2] = d_intrinsics[1, 3] = 1
             if "k1" in self.bundle.shared_intrinsics:
-                camera_point = (R[self.bundle.camera_index] @ points[self.bundle.point_index][..., None])[..., 0] + t[self.bundle.camera_index]
-                normalized = camera_point[:, :2] / camera_point[:, 2:]
-                d_intrinsics[:, :, 4] = torch.stack([K[0, 0], K[1, 1]]) * normalized * normalized.square().sum(-1, keepdim=True)
-            d_intrinsics = d_intrinsics @ self.intrinsics_basis  # (O, 2, m)
+                camera_point = _camera_points(self.bundle, R, t, points)[2]
+                normalized = camera_point[:2] / camera_point[2]
+                d_intrinsics[:, 4] = focal * normalized * normalized.square().sum(0)
+            d_intrinsics = _products(d_intrinsics, self.intrinsics_basis[..., None])  # (2, m, O)
         return residuals, rho, weights, d_camera, d_point, d_intrinsics
 
     def cost(self, params: Tensor) -> Tensor:

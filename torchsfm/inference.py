@@ -2,7 +2,7 @@
 
 None of them is differentiable (RANSAC draws, LM steps), so autograd's bookkeeping on each of
 their thousands of small tensor operations (version counters, view tracking) is pure overhead:
-measured at 18 % of one ``estimate_fundamental`` call on 1000 correspondences and 10 % of
+measured at 18 % of one ``estimate_fundamental`` call on 1000 correspondences and 7-10 % of
 ``estimate_relative_pose`` (single-thread CPU time). Tensors made in inference mode refuse
 in-place updates and autograd outside it, so what a decorated function returns is cloned into
 ordinary tensors on the way out (a few small tensors; a model's arrays once).

@@ -118,8 +118,7 @@ class BundleProblem:
 
     def depths(self) -> Tensor:
         """Depth of every observation's point in its camera (positive = in front): (O,)."""
-        c, p = self.camera_index, self.point_index
-        z = ((self.rotations[c] @ self.points[p][..., None])[..., 0] + self.translations[c])[:, 2]
+        z = _camera_points(self, self.rotations, self.translations, self.points)[2][2]
         return z if self.camera_model == "pinhole" else -z  # BAL cameras look down -z
 
     def select_points(self, keep: Tensor) -> BundleProblem:
@@ -256,14 +255,14 @@ class _SchurLinearization:
         Jp, r = d_point * root, residuals.T * root  # (2, 3, O), (2, O)
         C, P, dc = bundle.num_cameras, bundle.num_points, problem.dc
         c, p = bundle.camera_index, bundle.point_index
-        Jc_t = Jc.transpose(0, 1)  # (dc, 2, O)
+        Jc_t, Jp_t = Jc.transpose(0, 1), Jp.transpose(0, 1)  # (dc, 2, O), (3, 2, O): left factors of _products
         # U: one GEMM per camera over its observations' 2 rows each (columns in camera order)
         by_camera = Jc[:, :, problem.camera_order].permute(1, 2, 0).reshape(dc, -1)
         self.U = torch.stack([columns @ columns.T for columns in torch.split(by_camera, problem.camera_rows, dim=1)])
-        self.V = torch.zeros(P, 9, dtype=r.dtype, device=r.device).index_add_(0, p, _products(Jp.transpose(0, 1), Jp).reshape(9, -1).T).reshape(P, 3, 3)
+        self.V = torch.zeros(P, 9, dtype=r.dtype, device=r.device).index_add_(0, p, _products(Jp_t, Jp).reshape(9, -1).T).reshape(P, 3, 3)
         self.W = _products(Jc_t, Jp)  # (dc, 3, O)
         g_camera = torch.zeros(C, dc, dtype=r.dtype, device=r.device).index_add_(0, c, -_products(Jc_t, r[:, None])[:, 0].T)
-        g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, p, -_products(Jp.transpose(0, 1), r[:, None])[:, 0].T)
+        g_point = torch.zeros(P, 3, dtype=r.dtype, device=r.device).index_add_(0, p, -_products(Jp_t, r[:, None])[:, 0].T)
         self.gradient = torch.cat([g_camera.flatten(), g_point.flatten()])[None]
         self.diagonal = torch.cat([torch.diagonal(self.U, dim1=1, dim2=2).flatten(), torch.diagonal(self.V, dim1=1, dim2=2).flatten()])[None]
         self.border = None

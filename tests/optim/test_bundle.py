@@ -89,21 +89,29 @@ def test_noise_free_problems_converge_to_zero_cost(model, solver):
         assert_close(result.problem.translations[0], start.translations[0], rtol=0, atol=0)
 
 
-@pytest.mark.parametrize("chunk_numbers", [2**22, 7 * 36])
-def test_the_dense_solver_s_two_paths_agree(monkeypatch, chunk_numbers):
-    """The reduced camera system built from per-point blocks equals the one of the GEMM path,
-    which a memory budget of zero rules out, whether the blocks are formed all at once or a few
-    points at a time (``BLOCK_CHUNK_NUMBERS``: here 7 blocks, under one point's n² = 16). (By
-    default this ring takes the GEMM path: its tracks of n = 4 views among C = 12 give
+@pytest.mark.parametrize("chunk_numbers, block_number_flops", [(2**22, 1), (7 * 36, 1), (2**22, 30), (2**22, 10**9)])
+def test_the_dense_solver_s_two_paths_agree(monkeypatch, chunk_numbers, block_number_flops):
+    """The reduced camera system built track by track equals the one of the GEMM path, which a
+    memory budget of zero rules out. The ring's tracks here are of 3 and 4 views; a
+    ``BLOCK_NUMBER_FLOPS`` of 1 makes every one short (per-point blocks, formed all at once or a
+    few points at a time: ``BLOCK_CHUNK_NUMBERS`` of 7 blocks, under one point's n² = 9), 10⁹
+    every one long (dense products, C dc / 6 = 12 points at a time), and 30 puts the
+    crossover (n² dc² F > 3 (C dc)²) between them, so both kinds add into one system. (By
+    default this ring takes the GEMM path: its tracks of n = 3, 4 views among C = 12 give
     100 n² > 3 C², the crossover of ``_dense``.)"""
     _, start = _ring("pinhole", cameras=12, noise=0.5)
+    every_other = (start.point_index % 2 == 0) & (torch.arange(start.point_index.numel()) % 4 == 0)  # one view less
+    start.camera_index, start.point_index, start.observations = (x[~every_other] for x in (start.camera_index, start.point_index,
+                                                                                            start.observations))
+    assert set(torch.bincount(start.point_index).tolist()) == {3, 4}
     config = BundleAdjustmentConfig(linear_solver="dense")
     gemm = bundle_adjust(start, config=config)
     monkeypatch.setattr("torchsfm.optim.bundle.DENSE_BUFFER_BYTES", 0)
     monkeypatch.setattr("torchsfm.optim.bundle.BLOCK_CHUNK_NUMBERS", chunk_numbers)
-    blocks = bundle_adjust(start, config=config)
-    assert_close(blocks.problem.points, gemm.problem.points, rtol=0, atol=1e-9)
-    assert_close(blocks.final_cost, gemm.final_cost, rtol=1e-9, atol=0)
+    monkeypatch.setattr("torchsfm.optim.bundle.BLOCK_NUMBER_FLOPS", block_number_flops)
+    by_tracks = bundle_adjust(start, config=config)
+    assert_close(by_tracks.problem.points, gemm.problem.points, rtol=0, atol=1e-9)
+    assert_close(by_tracks.final_cost, gemm.final_cost, rtol=1e-9, atol=0)
 
 
 def test_dense_and_cg_reach_the_same_cost_under_noise():

@@ -397,13 +397,21 @@ class _SchurLinearization:
         c_b. Points in groups of equal track length n, ``BLOCK_CHUNK_NUMBERS`` numbers at a time:
         one batched product (n dc × 3)(3 × n dc) per chunk gives every camera-pair block of its
         points, added into S. The blocks' positions in S are made per chunk, not kept: Σ n² of
-        them is hundreds of megabytes for a long video's tracks."""
+        them is hundreds of megabytes for a long video's tracks. Tracks so long that their n²
+        blocks cost more than their three columns of the dense product (:meth:`_dense`'s
+        crossover, per track: n² dc² ``BLOCK_NUMBER_FLOPS`` > 3 (C dc)² — a long video's distant
+        points, seen from most of its frames) are summed by dense products instead
+        (:meth:`_add_long_track_products`)."""
         problem, bundle = self.problem, self.problem.bundle
         C, dc = bundle.num_cameras, problem.dc
         blocks = torch.zeros(C * C, dc, dc, dtype=Y.dtype, device=Y.device)
         Y_blocks, W_blocks = Y.permute(2, 0, 1), self.W.permute(2, 0, 1)  # (O, dc, 3) views
+        long = []
         for observations in problem.track_groups:  # (P_n, n) observation ids
             n = observations.shape[1]
+            if n * n * dc * dc * BLOCK_NUMBER_FLOPS > 3 * (C * dc) ** 2:
+                long.append(observations)
+                continue
             points_at_a_time = max(1, BLOCK_CHUNK_NUMBERS // (n * n * dc * dc))
             for start in range(0, observations.shape[0], points_at_a_time):
                 part = observations[start:start + points_at_a_time]
@@ -411,7 +419,32 @@ class _SchurLinearization:
                 products = Y_blocks[part].reshape(-1, n * dc, 3) @ W_blocks[part].reshape(-1, n * dc, 3).transpose(1, 2)
                 blocks.index_add_(0, (cameras[:, :, None] * C + cameras[:, None, :]).flatten(),
                                   products.view(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc))
-        return blocks.view(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
+        reduction = blocks.view(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
+        if long:
+            self._add_long_track_products(reduction, long, Y_blocks, W_blocks)
+        return reduction
+
+    def _add_long_track_products(self, reduction: Tensor, groups: list[Tensor], Y_blocks: Tensor, W_blocks: Tensor) -> None:
+        """Add Σ_p W_p V*_p⁻¹ W_pᵀ over the points of ``groups`` ((P_n, n) observation ids each)
+        to ``reduction`` (C dc, C dc) as dense products: their Y and W blocks (O, dc, 3) laid out
+        as (C dc, 3 p) for p = C dc / 6 points at a time, so that the two buffers together hold no
+        more than the reduction itself."""
+        bundle, dc = self.problem.bundle, self.problem.dc
+        C = bundle.num_cameras
+        lengths = torch.cat([torch.full((group.shape[0],), group.shape[1], dtype=torch.long, device=Y_blocks.device) for group in groups])
+        observations = torch.cat([group.flatten() for group in groups])  # point by point
+        slot = torch.repeat_interleave(torch.arange(lengths.numel(), device=Y_blocks.device), lengths)  # each one's point
+        camera = bundle.camera_index[observations]
+        ends = torch.cumsum(lengths, 0).tolist()
+        at_a_time = max(1, C * dc // 6)
+        for first in range(0, lengths.numel(), at_a_time):
+            last = min(first + at_a_time, lengths.numel())
+            rows = slice(ends[first - 1] if first else 0, ends[last - 1])
+            where = (camera[rows], slice(None), slot[rows] - first)
+            Y_dense = torch.zeros(C, dc, last - first, 3, dtype=Y_blocks.dtype, device=Y_blocks.device)
+            W_dense = torch.zeros_like(Y_dense)
+            Y_dense[where], W_dense[where] = Y_blocks[observations[rows]], W_blocks[observations[rows]]
+            reduction.addmm_(Y_dense.view(C * dc, -1), W_dense.view(C * dc, -1).T)
 
     def _conjugate_gradients(self, U: Tensor, V_inverse: Tensor, Y: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
         """Matrix-free PCG on S with a block-Jacobi preconditioner (S's camera diagonal blocks);

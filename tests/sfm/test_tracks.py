@@ -60,3 +60,17 @@ def test_covisibility_shared_corners_and_disparity_of_every_view_pair():
     expected = torch.tensor([[0.0, 5.0, ((100 + 1) / 2) ** 0.5], [5.0, 0.0, ((25 + 0) / 2) ** 0.5], [0.0, 0.0, 0.0]], dtype=torch.float64)
     expected[2, :2] = expected[:2, 2]
     assert_close(disparity, expected, rtol=0, atol=1e-9)
+
+
+def test_a_view_s_observations_and_a_track_s_observations_are_read_without_a_scan():
+    """``of_view`` gives each view's observations in ascending order (as ``view == v`` would,
+    empty for a view without any), ``observations_of`` every observation of the named tracks,
+    track by track in the order asked, with the position of its track."""
+    tracks = Tracks(view=torch.tensor([0, 1, 2, 0, 2, 1, 2, 3]), corner=torch.tensor([0, 0, 0, 1, 1, 1, 2, 0]),
+                    track=torch.tensor([0, 0, 0, 1, 1, 2, 2, 2]), num_tracks=3)
+    for view in range(6):
+        assert tracks.of_view(view).tolist() == torch.nonzero(tracks.view == view).flatten().tolist()
+    members, owner = tracks.observations_of(torch.tensor([2, 0]))
+    assert members.tolist() == [5, 6, 7, 0, 1, 2] and owner.tolist() == [0, 0, 0, 1, 1, 1]
+    members, owner = tracks.observations_of(torch.tensor([], dtype=torch.long))
+    assert members.numel() == 0 and owner.numel() == 0

@@ -71,6 +71,11 @@ class MapperState:
         """Whether every view has the same principal point (not so where some are turned to portrait)."""
         return bool((self.K[:, :2, 2] == self.K[0, :2, 2]).all())
 
+    def observing(self, view: int) -> Tensor:
+        """The view's observations (ascending indices into ``tracks``) of tracks with a point."""
+        own = self.tracks.of_view(view)
+        return own[self.has_point[self.tracks.track[own]]]
+
     def centres(self) -> Tensor:
         """(V, 3) camera centres (meaningful for registered views)."""
         return -(self.R.transpose(1, 2) @ self.t[..., None])[..., 0]
@@ -91,27 +96,28 @@ class MapperState:
 
     def triangulate_new(self, view: int) -> int:
         """Triangulate the tracks seen by ``view`` and another registered view that have no point
-        yet, each with the partner view of widest baseline; keep the well-conditioned ones."""
-        view_of, track_of = self.tracks.view, self.tracks.track
-        in_view = view_of == view
-        candidates = torch.zeros(self.tracks.num_tracks, dtype=torch.bool)
-        candidates[track_of[in_view]] = True
-        candidates &= ~self.has_point
-        partner_observation = candidates[track_of] & self.registered[view_of] & (view_of != view)
+        yet, each with the partner view of widest baseline; keep the well-conditioned ones. Only
+        the view's observations and those of its tracks are read (a long video calls this once
+        per view)."""
+        tracks = self.tracks
+        own = tracks.of_view(view)
+        own = own[~self.has_point[tracks.track[own]]]  # (M,) the view's observations of tracks without a point
+        members, owner = tracks.observations_of(tracks.track[own])  # those tracks' observations, (K,)
+        view_of = tracks.view[members]
+        partner_observation = self.registered[view_of] & (view_of != view)
         if not bool(partner_observation.any()):
             return 0
         centres = self.centres()
         distances = (centres - centres[view]).norm(dim=-1)
         # for every candidate track: its registered partner observation farthest from the view
         score = torch.where(partner_observation, distances[view_of], -1.0)
-        best = torch.full((self.tracks.num_tracks,), -1.0, dtype=torch.float64).scatter_reduce(0, track_of, score, "amax")
-        chosen = partner_observation & (score == best[track_of])
-        chosen_tracks, first = torch.unique(track_of[chosen], return_inverse=True)
-        partner_index = torch.full((chosen_tracks.numel(),), -1, dtype=torch.long).scatter_(0, first, torch.nonzero(chosen).flatten())
-        own_index = torch.full((self.tracks.num_tracks,), -1, dtype=torch.long)
-        own_index[track_of[in_view]] = torch.nonzero(in_view).flatten()
-        own_index = own_index[chosen_tracks]
-        partners = view_of[partner_index]  # (M,): each track's partner view, all triangulated as one batch
+        best = torch.full((own.numel(),), -1.0, dtype=torch.float64).scatter_reduce(0, owner, score, "amax")
+        chosen = partner_observation & (score == best[owner])
+        chosen_owners, first = torch.unique(owner[chosen], return_inverse=True)
+        partner_index = torch.full((chosen_owners.numel(),), -1, dtype=torch.long).scatter_(0, first, members[chosen])
+        own_index = own[chosen_owners]
+        chosen_tracks = tracks.track[own_index]
+        partners = tracks.view[partner_index]  # (M',): each track's partner view, all triangulated as one batch
         x_view, x_partner = self.pixels[own_index], self.pixels[partner_index]
         P = projection_matrix(self.K, self.R, self.t)  # (V, 3, 4)
         X = triangulate_points(x_partner[:, None], x_view[:, None], P[partners], P[view].expand_as(P[partners]),
@@ -378,13 +384,13 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
     every view in one ragged call; a view that keeps too few inliers there climbs the rest of
     its threshold ladder on its own."""
     tracks = model.tracks
-    rows = [(tracks.view == view) & model.has_point[tracks.track] for view in views]
+    rows = [model.observing(view) for view in views]
     if len(views) == 1:
         return [resect(model.points[tracks.track[rows[0]]], model.pixels[rows[0]], model.K[views[0]], config, generator)]
     data, valid = pad_rows([torch.cat([model.points[tracks.track[mine]], model.pixels[mine]], -1) for mine in rows])
     poses = estimate_absolute_pose(data[..., :3], data[..., 3:], model.K[views], valid=valid, config=config, generator=generator)
     return [resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, generator,
-                   first=AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : int(mine.sum())],
+                   first=AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : mine.numel()],
                                       num_trials=poses.num_trials[b], success=poses.success[b]))
             for b, (view, mine) in enumerate(zip(views, rows))]
 
@@ -422,7 +428,7 @@ def pose_from_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches]
         return f"its pair with view {other}: {error}"
     R, t = (pose.R, pose.t) if i == other else (pose.R.T, -pose.R.T @ pose.t)  # camera view = R camera other + t
     tracks = model.tracks
-    rows = (tracks.view == view) & model.has_point[tracks.track]
+    rows = model.observing(view)
     X = model.points[tracks.track[rows]]
     ray = to_homogeneous(pixels_to_normalized(model.pixels[rows], model.K[view]))  # (n, 3)
     fixed = (X @ model.R[other].T + model.t[other]) @ R.T  # camera view = fixed + s t
@@ -654,12 +660,10 @@ def still_frames(tracks: Tracks, corners: list[Tensor], config: Config) -> dict[
     not its predecessor, so that a slow drift starts a new keyframe once it adds up. Empty when
     fewer than two keyframes would be left (the initial-pair test then names the still camera).
     One pass over each view's observations: the keyframe's pixel of every track in a table."""
-    order = torch.argsort(tracks.view, stable=True)
-    bounds = torch.searchsorted(tracks.view[order], torch.arange(len(corners) + 1)).tolist()
-    observations = [order[start:end] for start, end in zip(bounds[:-1], bounds[1:])]  # each view's
 
     def pixels(view: int) -> tuple[Tensor, Tensor]:
-        return tracks.track[observations[view]], corners[view][tracks.corner[observations[view]]].double()
+        mine = tracks.of_view(view)
+        return tracks.track[mine], corners[view][tracks.corner[mine]].double()
 
     still, key = {}, 0
     at_key = torch.full((tracks.num_tracks, 2), torch.nan, dtype=torch.float64)  # the keyframe's pixel per track

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -25,10 +26,40 @@ class Tracks:
     track: Tensor
     num_tracks: int
 
+    def of_view(self, view: int) -> Tensor:
+        """The observation indices (into ``view``, ``corner``, ``track``) of one view, ascending:
+        (K_v,), from one sort of the observations by view, made on the first call."""
+        order, starts, counts = self._by_view
+        if view >= counts.numel():
+            return order[:0]
+        start = int(starts[view])
+        return order[start:start + int(counts[view])]
+
+    def observations_of(self, tracks: Tensor) -> tuple[Tensor, Tensor]:
+        """Every observation of the (M,) ``tracks``, track by track in their order (ascending
+        within each), and the position in ``tracks`` of the track each belongs to: two (K,)."""
+        starts, counts = self._by_track
+        lengths = counts[tracks]
+        owner = torch.repeat_interleave(torch.arange(tracks.numel()), lengths)
+        within = torch.arange(owner.numel()) - (torch.cumsum(lengths, 0) - lengths)[owner]
+        return starts[tracks][owner] + within, owner
+
+    @cached_property
+    def _by_view(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The observations sorted by view (stably), and each view's first place and count there."""
+        counts = torch.bincount(self.view)
+        return torch.argsort(self.view, stable=True), torch.cumsum(counts, 0) - counts, counts
+
+    @cached_property
+    def _by_track(self) -> tuple[Tensor, Tensor]:
+        """Each track's first observation and its number of observations (sorted by track)."""
+        counts = torch.bincount(self.track, minlength=self.num_tracks)
+        return torch.cumsum(counts, 0) - counts, counts
+
     def lookup(self, view: int, num_corners: int) -> Tensor:
         """Track id of each corner of a view, -1 where it has none: (num_corners,)."""
         table = torch.full((num_corners,), -1, dtype=torch.long)
-        mine = self.view == view
+        mine = self.of_view(view)
         table[self.corner[mine]] = self.track[mine]
         return table
 
@@ -54,7 +85,7 @@ class Tracks:
 
     def shared(self, view1: int, view2: int) -> tuple[Tensor, Tensor]:
         """Corner indices (M,), (M,) in view1 and view2 of the M tracks seen in both."""
-        in1, in2 = self.view == view1, self.view == view2
+        in1, in2 = self.of_view(view1), self.of_view(view2)
         both = torch.isin(self.track[in1], self.track[in2])
         tracks = self.track[in1][both]
         corner2 = torch.full((self.num_tracks,), -1, dtype=torch.long)

@@ -420,6 +420,7 @@ class _SchurLinearization:
                 blocks.index_add_(0, (cameras[:, :, None] * C + cameras[:, None, :]).flatten(),
                                   products.view(-1, n, dc, n, dc).transpose(2, 3).reshape(-1, dc, dc))
         reduction = blocks.view(C, C, dc, dc).transpose(1, 2).reshape(C * dc, C * dc)
+        del blocks  # (C², dc, dc): as large as the reduction, and no longer needed beside the dense products' buffers
         if long:
             self._add_long_track_products(reduction, long, Y_blocks, W_blocks)
         return reduction

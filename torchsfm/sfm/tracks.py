@@ -19,6 +19,9 @@ class Tracks:
         view: (T,) int64 view of each track observation; corner: (T,) its corner index in that view;
         track: (T,) its track id in [0, num_tracks). Sorted by track.
         num_tracks: number of tracks (each has observations in at least two distinct views).
+
+    A value: its fields are not changed once made (the indices by view and by track are computed
+    on first use and kept; observations found later make a new ``Tracks``).
     """
 
     view: Tensor

@@ -62,7 +62,7 @@ def test_covisibility_shared_corners_and_disparity_of_every_view_pair():
     assert_close(disparity, expected, rtol=0, atol=1e-9)
 
 
-def test_a_view_s_observations_and_a_track_s_observations_are_read_without_a_scan():
+def test_observations_are_read_by_view_and_by_track():
     """``of_view`` gives each view's observations in ascending order (as ``view == v`` would,
     empty for a view without any), ``observations_of`` every observation of the named tracks,
     track by track in the order asked, with the position of its track."""

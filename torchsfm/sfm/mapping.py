@@ -660,7 +660,6 @@ def still_frames(tracks: Tracks, corners: list[Tensor], config: Config) -> dict[
     not its predecessor, so that a slow drift starts a new keyframe once it adds up. Empty when
     fewer than two keyframes would be left (the initial-pair test then names the still camera).
     One pass over each view's observations: the keyframe's pixel of every track in a table."""
-
     def pixels(view: int) -> tuple[Tensor, Tensor]:
         mine = tracks.of_view(view)
         return tracks.track[mine], corners[view][tracks.corner[mine]].double()

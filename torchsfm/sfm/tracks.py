@@ -56,7 +56,7 @@ class Tracks:
     @cached_property
     def _by_track(self) -> tuple[Tensor, Tensor]:
         """Each track's first observation and its number of observations (sorted by track)."""
-        counts = torch.bincount(self.track, minlength=self.num_tracks)
+        counts = self.lengths()
         return torch.cumsum(counts, 0) - counts, counts
 
     def lookup(self, view: int, num_corners: int) -> Tensor:

@@ -16,14 +16,21 @@ def test_a_patch_module_in_batches_gives_the_same_numbers():
 
 
 def test_sift_features_are_kornias():
-    """On a textured synthetic image: the keypoints and descriptors of Kornia's SIFTFeature itself
-    (over a thousand features, so the descriptor runs in several blocks)."""
+    """On three textured synthetic images, described side by side on two threads: the keypoints
+    and descriptors of Kornia's SIFTFeature itself on each image alone, in the views' order (over
+    a thousand features each, so the descriptor runs in several blocks)."""
     g = torch.Generator().manual_seed(1)
-    image = torch.nn.functional.interpolate(torch.rand(1, 1, 60, 80, generator=g), size=(240, 320), mode="bilinear")
-    grey = (image[0] * 255).round().to(torch.uint8)
-    points, descriptors = sift_features([grey], 2000)
-    assert points[0].shape[0] > 2 * DESCRIBED_PER_CALL
-    with torch.no_grad():
-        frames, _, expected = SIFTFeature(num_features=2000)(to_unit_float(grey[None]))
-    assert torch.equal(descriptors[0], expected[0])
-    assert torch.equal(points[0], frames[0, :, :, 2].double())
+    greys = [(torch.nn.functional.interpolate(torch.rand(1, 1, 60, 80, generator=g), size=(240, 320), mode="bilinear")[0] * 255)
+             .round().to(torch.uint8) for _ in range(3)]
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        points, descriptors = sift_features(greys, 2000)
+    finally:
+        torch.set_num_threads(threads)
+    for grey, view_points, view_descriptors in zip(greys, points, descriptors):
+        assert view_points.shape[0] > 2 * DESCRIBED_PER_CALL
+        with torch.no_grad():
+            frames, _, expected = SIFTFeature(num_features=2000)(to_unit_float(grey[None]))
+        assert torch.equal(view_descriptors, expected[0])
+        assert torch.equal(view_points, frames[0, :, :, 2].double())

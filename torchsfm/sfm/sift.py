@@ -19,6 +19,7 @@ from torchsfm.config import PairsConfig
 from torchsfm.images import inside_mask, to_grey_bytes, to_unit_float
 from torchsfm.sfm.pairs import fit_homographies, pairs_to_match
 from torchsfm.pipeline import ConfiguredStage
+from torchsfm.threads import map_in_threads
 
 if TYPE_CHECKING:  # the state type only: stages.py builds its default pipeline from these stages
     from torchsfm.sfm.stages import ViewSet
@@ -77,21 +78,27 @@ class InBatches(nn.Module):
 def sift_features(greys: list[Tensor], num_features: int, masks: list[Tensor | None] | None = None
                   ) -> tuple[list[Tensor], list[Tensor]]:
     """SIFT keypoint centres (K_v, 2) float64 pixels and descriptors (K_v, 128) of every view of
-    (V, 1, H, W) grey images, one view at a time (Kornia's :class:`~kornia.feature.SIFTFeature`,
-    its patch descriptor applied :data:`DESCRIBED_PER_CALL` patches at a time); only where each
-    view's (H, W) bool mask keeps, given ``masks`` (None entries: everywhere)."""
+    (V, 1, H, W) grey images (Kornia's :class:`~kornia.feature.SIFTFeature`, its patch descriptor
+    applied :data:`DESCRIBED_PER_CALL` patches at a time); only where each view's (H, W) bool mask
+    keeps, given ``masks`` (None entries: everywhere). The views are described side by side
+    (:func:`~torchsfm.threads.map_in_threads`: one image's pyramid and patches are too small for
+    the intra-op threads to share; the same numbers as one view at a time)."""
+    masks = masks or [None] * len(greys)
+    described = map_in_threads(lambda view: _describe(*view, num_features), list(zip(greys, masks)))
+    return [points for points, _ in described], [descriptors for _, descriptors in described]
+
+
+def _describe(grey: Tensor, mask: Tensor | None, num_features: int) -> tuple[Tensor, Tensor]:
+    """:func:`sift_features` of one (1, H, W) grey image: (K, 2) centres, (K, 128) descriptors;
+    a SIFT module of its own (its construction takes milliseconds), for a thread of its own."""
     sift = SIFTFeature(num_features=num_features)
     if isinstance(sift.descriptor, LAFDescriptor):
         sift.descriptor.descriptor = InBatches(sift.descriptor.descriptor, DESCRIBED_PER_CALL)
-    points, descriptors = [], []
     with torch.no_grad():
-        for v, grey in enumerate(greys):
-            frames, _, described = sift(to_unit_float(grey[None]))
-            centres = get_laf_center(frames)[0].double()
-            kept = inside_mask(centres, None if masks is None else masks[v])
-            points.append(centres[kept])
-            descriptors.append(described[0][kept])
-    return points, descriptors
+        frames, _, described = sift(to_unit_float(grey[None]))
+    centres = get_laf_center(frames)[0].double()
+    kept = inside_mask(centres, mask)
+    return centres[kept], described[0][kept]
 
 
 def sift_homographies(greys: list[Tensor], pairs: list[tuple[int, int]], config: PairsConfig,

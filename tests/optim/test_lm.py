@@ -116,3 +116,40 @@ def test_status_is_honest():
     result = levenberg_marquardt(residual, torch.tensor([[1.0, 2.0]], **DOUBLE), LMConfig(max_iterations=500),
                                  jacobian=wrong_jacobian)
     assert result.stalled.all() and not result.converged.any() and not result.failed.any()
+
+
+class UndersoldQuadratic:
+    """c(p) = ½ h (p - 3)² per problem, p (B, 1), linearized with curvature 1 where the cost has
+    h: the model's step goes 1/h of the way when h < 1 (gain ratio 2 - h). Counts its cost calls."""
+
+    def __init__(self, curvature: float) -> None:
+        self.curvature, self.costs = curvature, 0
+
+    def cost(self, params):
+        self.costs += 1
+        return 0.5 * self.curvature * (params[:, 0] - 3).square()
+
+    def linearize(self, params):
+        return DenseLinearization(torch.ones(params.shape[0], 1, 1, **DOUBLE), self.curvature * (params - 3))
+
+    def retract(self, params, delta):
+        return params + delta
+
+
+def test_a_step_the_model_undersells_is_doubled_while_the_cost_falls(monkeypatch):
+    """At curvature 1/4 the model's step from -1 reaches 0 (gain ratio 1.75 > 4/3): doubled to 1,
+    then to 3, the minimum (the next doubling, to 7, costs more): one iteration. Without the
+    doubling (its threshold out of reach) every step goes a quarter of the remaining way. An exact
+    model (gain ratio 1) is never doubled: one cost call per iteration besides the start's."""
+    start, config = torch.tensor([[-1.0], [-1.0]], **DOUBLE), LMConfig(initial_damping=1e-12, damping="identity")
+    doubled = minimize(UndersoldQuadratic(0.25), start, config)
+    assert_close(doubled.params, torch.full((2, 1), 3.0, **DOUBLE), rtol=0, atol=1e-9)  # the damping's 1e-12
+    assert doubled.num_iterations.tolist() == [1, 1] and doubled.converged.all()
+    exact = UndersoldQuadratic(1.0)
+    plain = minimize(exact, start, config)
+    assert_close(plain.params, torch.full((2, 1), 3.0, **DOUBLE), rtol=0, atol=1e-9)
+    assert exact.costs == 1 + int(plain.num_iterations.max())
+    monkeypatch.setattr("torchsfm.optim.lm.EXPANSION_GAIN", float("inf"))
+    crawling = minimize(UndersoldQuadratic(0.25), start, config)
+    assert (crawling.num_iterations > 20).all()
+    assert (crawling.cost > doubled.cost).all()

@@ -27,6 +27,7 @@ ResidualFn = Callable[[Tensor], Tensor]
 RetractFn = Callable[[Tensor, Tensor], Tensor]
 
 _MAX_DAMPING = 1e32
+EXPANSION_GAIN = 4 / 3  # gain ratio above which doubling an accepted step lowers the cost further (see _expanded)
 
 
 class Linearization(Protocol):
@@ -93,7 +94,9 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
     """Levenberg–Marquardt with Nielsen's damping update on a batch of problems.
 
     The damping matrix is ``mu I`` (thesis, ``config.damping = "identity"``) or ``mu diag(JᵀJ)``
-    (Marquardt's scaling, ``"diagonal"``, for parameters of very different units).
+    (Marquardt's scaling, ``"diagonal"``, for parameters of very different units). An accepted
+    step that lowered the cost by more than 4/3 of what the model predicted is doubled while the
+    cost keeps falling (:func:`_expanded`: a robust loss otherwise creeps to its minimum).
     """
     cost = problem.cost(params)
     initial_cost = cost
@@ -123,6 +126,9 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         predicted = 0.5 * (delta * (damping * delta + linear.gradient)).sum(-1)
         rho = (cost - cost_new) / floor_tiny(predicted)
         accept = active & solved & ~tiny_step & torch.isfinite(cost_new) & (rho > 0)
+        longer = accept & (rho > EXPANSION_GAIN)
+        if bool(longer.any()):
+            candidate, cost_new = _expanded(problem, params, delta, candidate, cost_new, longer)
         small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
 
         params = torch.where(accept.reshape(-1, *[1] * (params.dim() - 1)), candidate, params)
@@ -144,6 +150,26 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
         active = active & ~converged & ~stalled
     return LMResult(params=params, initial_cost=initial_cost, cost=cost, num_iterations=iterations, converged=converged,
                     stalled=stalled, failed=failed)
+
+
+def _expanded(problem: LMProblem, params: Tensor, delta: Tensor, candidate: Tensor, cost: Tensor, longer: Tensor
+              ) -> tuple[Tensor, Tensor]:
+    """The accepted steps of the ``longer`` (B,) problems doubled while that lowers the cost:
+    the candidates (B, *S) and their costs (B,). Along a step δ of the damped model, a quadratic
+    cost c(α δ) whose curvature is h_true where the model has h (the model's minimum at α = 1)
+    gives the gain ratio ρ = 2 - h_true / h, and c(2 δ) < c(δ) exactly when h_true < 2h/3, i.e.
+    ρ > 4/3 (``EXPANSION_GAIN``). A robust loss puts the model there: its weights ignore the
+    loss's negative second derivative, the model is too curved along the steps that release
+    outliers, and every step goes about half way (ρ near 2: the iterative-reweighting crawl)."""
+    reach = torch.ones_like(cost)
+    while bool(longer.any()):
+        trial = problem.retract(params, (2 * reach)[:, None] * delta)
+        trial_cost = problem.cost(trial)
+        longer = longer & torch.isfinite(trial_cost) & (trial_cost < cost)
+        candidate = torch.where(longer.reshape(-1, *[1] * (params.dim() - 1)), trial, candidate)
+        cost = torch.where(longer, trial_cost, cost)
+        reach = torch.where(longer, 2 * reach, reach)
+    return candidate, cost
 
 
 class DenseLinearization:

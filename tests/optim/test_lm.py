@@ -153,3 +153,24 @@ def test_a_step_the_model_undersells_is_doubled_while_the_cost_falls(monkeypatch
     crawling = minimize(UndersoldQuadratic(0.25), start, config)
     assert (crawling.num_iterations > 20).all()
     assert (crawling.cost > doubled.cost).all()
+
+
+class Receding:
+    """c(p) = 1 / (1 + p): it falls for ever towards 0 (a point receding to infinity), linearized
+    four times as curved as it is at p = 0 (gain ratio 1.6 on the first step)."""
+
+    def cost(self, params):
+        return 1 / (1 + params[:, 0])
+
+    def linearize(self, params):
+        return DenseLinearization(torch.full((params.shape[0], 1, 1), 2.0, **DOUBLE), -0.5 / (1 + params).square())
+
+    def retract(self, params, delta):
+        return params + delta
+
+
+def test_a_step_is_doubled_at_most_ten_times():
+    """A cost that never stops falling along the step: its first step (0.25) is doubled ten times,
+    to 256, not run out to overflow."""
+    result = minimize(Receding(), torch.zeros(1, 1, **DOUBLE), LMConfig(max_iterations=1, initial_damping=1e-12, damping="identity"))
+    assert_close(result.params, torch.full((1, 1), 256.0, **DOUBLE), rtol=1e-9, atol=0)  # the damping's 1e-12

@@ -28,6 +28,8 @@ RetractFn = Callable[[Tensor, Tensor], Tensor]
 
 _MAX_DAMPING = 1e32
 EXPANSION_GAIN = 4 / 3  # gain ratio above which doubling an accepted step lowers the cost further (see _expanded)
+EXPANSION_DOUBLINGS = 10  # at most 2^10 times the step: a cost falling toward a limit (a point receding to
+# infinity) does not carry the parameters out to overflow
 
 
 class Linearization(Protocol):
@@ -160,9 +162,12 @@ def _expanded(problem: LMProblem, params: Tensor, delta: Tensor, candidate: Tens
     gives the gain ratio ρ = 2 - h_true / h, and c(2 δ) < c(δ) exactly when h_true < 2h/3, i.e.
     ρ > 4/3 (``EXPANSION_GAIN``). A robust loss puts the model there: its weights ignore the
     loss's negative second derivative, the model is too curved along the steps that release
-    outliers, and every step goes about half way (ρ near 2: the iterative-reweighting crawl)."""
+    outliers, and every step goes about half way (ρ near 2: the iterative-reweighting crawl).
+    At most ``EXPANSION_DOUBLINGS`` doublings."""
     reach = torch.ones_like(cost)
-    while bool(longer.any()):
+    for _ in range(EXPANSION_DOUBLINGS):
+        if not bool(longer.any()):
+            break
         trial = problem.retract(params, (2 * reach)[:, None] * delta)
         trial_cost = problem.cost(trial)
         longer = longer & torch.isfinite(trial_cost) & (trial_cost < cost)

@@ -160,7 +160,8 @@ def _expanded(problem: LMProblem, params: Tensor, delta: Tensor, candidate: Tens
     the candidates (B, *S) and their costs (B,). Along a step δ of the damped model, a quadratic
     cost c(α δ) whose curvature is h_true where the model has h (the model's minimum at α = 1)
     gives the gain ratio ρ = 2 - h_true / h, and c(2 δ) < c(δ) exactly when h_true < 2h/3, i.e.
-    ρ > 4/3 (``EXPANSION_GAIN``). A robust loss puts the model there: its weights ignore the
+    ρ > 4/3 (``EXPANSION_GAIN``; with damping the model's minimum lies beyond δ, and ρ > 4/3
+    still implies it; each doubling is kept only if the cost did fall). A robust loss puts the model there: its weights ignore the
     loss's negative second derivative, the model is too curved along the steps that release
     outliers, and every step goes about half way (ρ near 2: the iterative-reweighting crawl).
     At most ``EXPANSION_DOUBLINGS`` doublings."""

@@ -157,7 +157,7 @@ def test_a_step_the_model_undersells_is_doubled_while_the_cost_falls(monkeypatch
 
 class Receding:
     """c(p) = 1 / (1 + p): it falls for ever towards 0 (a point receding to infinity), linearized
-    four times as curved as it is at p = 0 (gain ratio 1.6 on the first step)."""
+    twice as curved as it is at p = 0 (gain ratio 1.6 on the first step)."""
 
     def cost(self, params):
         return 1 / (1 + params[:, 0])

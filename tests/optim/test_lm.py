@@ -120,7 +120,7 @@ def test_status_is_honest():
 
 class UndersoldQuadratic:
     """c(p) = ½ h (p - 3)² per problem, p (B, 1), linearized with curvature 1 where the cost has
-    h: the model's step goes 1/h of the way when h < 1 (gain ratio 2 - h). Counts its cost calls."""
+    h: the model's step goes the share h of the way (gain ratio 2 - h). Counts its cost calls."""
 
     def __init__(self, curvature: float) -> None:
         self.curvature, self.costs = curvature, 0

@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import LMConfig
-from torchsfm.numerics import floor_tiny
+from torchsfm.numerics import floor_tiny, where_per_problem
 
 ResidualFn = Callable[[Tensor], Tensor]
 RetractFn = Callable[[Tensor, Tensor], Tensor]
@@ -133,7 +133,7 @@ def minimize(problem: LMProblem, params: Tensor, config: LMConfig) -> LMResult:
             candidate, cost_new = _expanded(problem, params, delta, candidate, cost_new, longer)
         small_decrease = accept & (cost - cost_new <= config.cost_tolerance * cost)
 
-        params = torch.where(accept.reshape(-1, *[1] * (params.dim() - 1)), candidate, params)
+        params = where_per_problem(accept, candidate, params)
         cost_before = cost
         cost = torch.where(accept, cost_new, cost)
         if bool(accept.any()):  # at the candidate: it is ``params`` wherever the step was accepted, and only there is it used
@@ -172,7 +172,7 @@ def _expanded(problem: LMProblem, params: Tensor, delta: Tensor, candidate: Tens
         trial = problem.retract(params, (2 * reach)[:, None] * delta)
         trial_cost = problem.cost(trial)
         longer = longer & torch.isfinite(trial_cost) & (trial_cost < cost)
-        candidate = torch.where(longer.reshape(-1, *[1] * (params.dim() - 1)), trial, candidate)
+        candidate = where_per_problem(longer, trial, candidate)
         cost = torch.where(longer, trial_cost, cost)
         reach = torch.where(longer, 2 * reach, reach)
     return candidate, cost

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import RansacConfig
+from torchsfm.numerics import where_per_problem
 from torchsfm.robust.samplers import SAMPLERS, UniformSampler, resolve_generator
 
 ROUND_ELEMENTS = 2**23  # hypotheses × rows of one round's block of problems (see ``ransac``)
@@ -196,18 +197,18 @@ def ransac(
         improved = round_score > best_score[live]  # (P,)
         if best_model is None:  # problems that never draw keep zeros (they have fewer than s rows: no inliers)
             best_model = chosen.new_zeros(B, *chosen.shape[1:])
-        current = _where_batch(improved, chosen, best_model[live])
+        current = where_per_problem(improved, chosen, best_model[live])
         current_score = torch.where(improved, round_score, best_score[live])
-        current_inliers = _where_batch(improved, chosen_inliers, best_inliers[live])
+        current_inliers = where_per_problem(improved, chosen_inliers, best_inliers[live])
         for _ in range(config.local_refits if bool(improved.any()) else 0):
             refit = live_model.fit_weighted(live_data, current_inliers.to(data.dtype))
             ok = improved & (current_inliers.sum(-1) >= s)
             score, inliers = evaluate(live_model, refit[:, None], ok[:, None], live_data, live_valid)
             better = improved & (score[:, 0] >= current_score)
             moved = better & (inliers[:, 0] != current_inliers).any(-1)
-            current = _where_batch(better, refit, current)
+            current = where_per_problem(better, refit, current)
             current_score = torch.where(better, score[:, 0], current_score)
-            current_inliers = _where_batch(better, inliers[:, 0], current_inliers)
+            current_inliers = where_per_problem(better, inliers[:, 0], current_inliers)
             if not bool(moved.any()):
                 break  # the same inliers give the same refit: every further one would repeat this one
         best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
@@ -220,8 +221,3 @@ def ransac(
         best_model = model.fit_weighted(data, valid.to(data.dtype))
     success = best_inliers.sum(-1) >= s
     return RansacResult(model=best_model, inlier_mask=best_inliers, num_trials=trials, success=success)
-
-
-def _where_batch(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:
-    """Per-problem choice between two (B, *M) tensors by a (B,) mask."""
-    return torch.where(condition.reshape(-1, *([1] * (a.dim() - 1))), a, b)

@@ -77,14 +77,12 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         ci, cj = i[cols], j[cols]
         d1 = _distances(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
         d2 = _distances(points2[j[rows]], points2[cj])  # and d(m2j, n2l)
-        neighbour = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius)
-                     & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))
-        r_index, c_index = torch.nonzero(neighbour, as_tuple=True)  # the neighbouring pairs
-        d1, d2 = d1[r_index, c_index], d2[r_index, c_index]
         dist = 0.5 * (d1 + d2)
-        r = (d1 - d2).abs() / dist.clamp_min(1e-12)
-        alike = torch.nonzero(r < config.relative_distance_threshold).flatten()  # δ > 0: the E that count
-        r_index, c_index, r, dist = r_index[alike], c_index[alike], r[alike], dist[alike]
+        r = (d1 - d2).abs_().div_(dist.clamp_min(1e-12))
+        alike = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius) & (r < config.relative_distance_threshold)
+                 & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))  # neighbours with δ > 0: the E that count
+        r_index, c_index = torch.nonzero(alike, as_tuple=True)
+        r, dist = r[r_index, c_index], dist[r_index, c_index]
         value = c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist)  # (E,)
         R = rows.numel()
         points_k, local_k = torch.unique(ci, return_inverse=True)  # the columns name few corners of each image:

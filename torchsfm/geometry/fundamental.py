@@ -242,8 +242,7 @@ def sampson_error_of_hypotheses(F: Tensor, x1: Tensor, x2: Tensor) -> Tensor:
     B, H = F.shape[:2]
     N = x1.shape[-2]
     h1, h2 = to_homogeneous(x1), to_homogeneous(x2)  # (B, N, 3)
-    outer = (h2[..., :, None] * h1[..., None, :]).reshape(B, N, 9)
-    algebraic = outer @ F.reshape(B, H, 9).transpose(-1, -2)  # (B, N, H)
+    algebraic = epipolar_design_matrix(x1, x2) @ F.reshape(B, H, 9).transpose(-1, -2)  # (B, N, H): rows x2 ⊗ x1
     line2 = h1 @ F[:, :, :2, :].reshape(B, 2 * H, 3).transpose(-1, -2)  # (B, N, 2H): rows 0, 1 of F on h1
     line1 = h2 @ F[:, :, :, :2].transpose(-1, -2).reshape(B, 2 * H, 3).transpose(-1, -2)  # columns 0, 1 on h2
     line2, line1 = line2.square_().reshape(B, N, H, 2), line1.square_().reshape(B, N, H, 2)

@@ -84,8 +84,11 @@ def test_rigid_group_is_fitted_to_its_members_alone():
     """Eight frames, two objects, 0.3 px noise, every other static track as members: scrambling
     the other tracks (their positions shuffled among them independently in every frame, so every
     frame holds the same points and the normalization is unchanged, but no other track stays
-    rigid, not even the static non-members that would fit the group) leaves the members' cameras,
-    residuals and verdicts exactly as they were: only the members weigh in."""
+    rigid, not even the static non-members that would fit the group) leaves the members' verdicts
+    exactly as they were, and their cameras and residuals to rounding: only the members weigh in.
+    (Rounding, not bit for bit: the normalization's sums over every track take the same numbers
+    in another order: 1.5e-13 apart on this stop's AVX-512 machine, bit for bit on earlier ones. One non-member
+    weighing in would move them by orders of magnitude more.)"""
     scene = _scene(frames=8, noise=0.3)
     F_, N, _ = scene.tracks.shape
     visible = torch.ones(F_, N, dtype=torch.bool)
@@ -104,8 +107,8 @@ def test_rigid_group_is_fitted_to_its_members_alone():
                            generator=torch.Generator().manual_seed(0))
 
     plain, other = fit(scene.tracks), fit(scrambled)
-    torch.testing.assert_close(other.cameras, plain.cameras, rtol=0, atol=0)
-    torch.testing.assert_close(other.rms[members], plain.rms[members], rtol=0, atol=0)
+    torch.testing.assert_close(other.cameras, plain.cameras, rtol=1e-9, atol=1e-11)
+    torch.testing.assert_close(other.rms[members], plain.rms[members], rtol=1e-9, atol=1e-11)
     assert torch.equal(other.members, plain.members)
     assert bool(plain.members[members].float().mean() > 0.9) and not bool(plain.members[~members].any())
 

@@ -14,8 +14,9 @@ that removes the double counting but is not symmetric when a dropped k has anoth
 mutual-best rule gives the same SM whichever image comes first, which is what the fix is for, and
 agrees with the thesis' rule whenever the best partners are unique.) Candidate pairs are evaluated a
 block of spatially nearby rows at a time (tiles half a neighbourhood radius wide, taken in Z order)
-against the candidates in the surrounding tiles, and only the pairs within the radius are kept (a
-sparse list), so the cost grows with the candidates' local density, not with their number squared.
+against the candidates in the surrounding tiles, and only the pairs within the radius whose
+distances are alike (δ > 0) are kept (a sparse list), so the cost grows with the candidates' local
+density, not with their number squared.
 Relaxation then accepts matches iteratively: winner-take-all accepts every candidate that is the
 best of both its points; some-winners-take-all (default) accepts only those in the top α of both
 the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10).

@@ -196,6 +196,11 @@ class RelativePoseConfig:
     2× faster and as accurate on ``benchmarks/two_view.py``'s scenes, but from one start it can
     settle on a wrong optimum: at 60 % outliers, one of ten synthetic scenes with RANSAC seed 0
     (1.7° in t, against 0.2° with the extra starts).
+
+    A pose whose inliers show no parallax beyond noise (the χ² test of
+    :func:`~torchsfm.geometry.essential.parallax_is_noise` at ``parallax_significance``, with
+    the inlier threshold as 2σ of the Sampson distance) has no determined translation: the
+    camera turned in place or did not move. It is an error, not a pose.
     """
 
     method: PoseMethod = "svd"
@@ -206,10 +211,12 @@ class RelativePoseConfig:
     start_sample_size: int = 16
     start_threshold_factor: float = 4.0
     refine_support_factor: float = 1.5
+    parallax_significance: float = 1e-3
 
     def __post_init__(self) -> None:
         _require_choices(self)
         _require(self.num_starts >= 0, "num_starts", self.num_starts, "must be >= 0")
+        _require(0 < self.parallax_significance < 1, "parallax_significance", self.parallax_significance, "must lie in (0, 1)")
         _require(self.kept_starts >= 1, "kept_starts", self.kept_starts, "must be >= 1")
         _require(self.start_sample_size >= 8, "start_sample_size", self.start_sample_size, "must be >= 8")
         _require(self.refine_support_factor >= 1, "refine_support_factor", self.refine_support_factor, "must be >= 1")

@@ -136,6 +136,15 @@ class TestBadInput:
     def test_fewer_than_eight_points(self):
         with pytest.raises(NotEnoughDataError, match="at least 8, got 7"):
             torchsfm.estimate_fundamental(self.scene.x1[:7], self.scene.x2[:7])
+        with pytest.raises(NotEnoughDataError, match="at least 8, got 0"):
+            torchsfm.estimate_fundamental(self.scene.x1[:0], self.scene.x2[:0])
+
+    def test_a_batch_of_no_problems_gives_empty_results(self):
+        none, K = torch.zeros(0, 20, 2, **DOUBLE), self.scene.K1
+        estimate = torchsfm.estimate_fundamental(none, none)
+        assert estimate.F.shape == (0, 3, 3) and estimate.inlier_mask.shape == (0, 20) and estimate.success.shape == (0,)
+        pose = torchsfm.estimate_relative_pose(none, none, K, K)
+        assert pose.R.shape == (0, 3, 3) and pose.t.shape == (0, 3) and pose.points3d == ()
 
     @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
     def test_non_finite_coordinates(self, bad):
@@ -166,6 +175,16 @@ class TestBadInput:
             torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x2, self.scene.K1[:2], self.scene.K2)
         with pytest.raises(InputError, match="K1 holds"):
             torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x2, self.scene.K1 * float("nan"), self.scene.K2)
+
+    def test_no_parallax_is_an_error_not_a_pose(self):
+        """A camera that did not move (x2 = x1) or turned in place (noise 0.3 px, baseline 0):
+        any unit t explains the epipolar residuals, so a pose would be an arbitrary translation
+        with points at infinity; the χ² test on the inliers' parallax refuses it instead."""
+        with pytest.raises(DegenerateConfigurationError, match=r"no parallax beyond noise \(median 0.00 px"):
+            torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x1.clone(), self.scene.K1, self.scene.K1)
+        turned = synthetic_two_view(200, noise=0.3, baseline=0.0, seed=8)
+        with pytest.raises(DegenerateConfigurationError, match="the camera turned in place or did not move"):
+            torchsfm.estimate_relative_pose(turned.x1, turned.x2, turned.K1, turned.K2, generator=_generator())
 
     def test_pure_noise_never_returns_nan(self):
         g = _generator(3)
@@ -223,3 +242,19 @@ def test_relative_pose_ragged_batch_is_exact_per_problem_and_survives_a_bad_one(
         assert pose.points3d[b].shape == (int(scene.is_inlier.sum()), 3)
     assert not pose.inlier_mask[2].any() and pose.points3d[2].shape == (0, 3)
     assert torch.isfinite(pose.R).all() and torch.isfinite(pose.t).all() and torch.isfinite(pose.F).all()
+
+
+def test_a_short_baseline_keeps_its_pose_and_a_batch_reports_the_turned_camera():
+    """Parallax of about 2 px (baseline 0.02 at 4-8 m, f = 600) under 0.3 px noise is far
+    beyond noise: the pose stands, its translation within 10°. In one batch with a camera that
+    turned in place (baseline 0), that problem alone reports failure (R = I, t = 0, no inliers)."""
+    short = synthetic_two_view(200, noise=0.3, baseline=0.02, seed=8)
+    turned = synthetic_two_view(200, noise=0.3, baseline=0.0, seed=8)
+    x1, x2 = torch.stack([short.x1, turned.x1]), torch.stack([short.x2, turned.x2])
+    K1, K2 = torch.stack([short.K1, turned.K1]), torch.stack([short.K2, turned.K2])
+    pose = torchsfm.estimate_relative_pose(x1, x2, K1, K2, valid=torch.ones(2, 200, dtype=torch.bool), generator=_generator())
+    assert pose.success.tolist() == [True, False]
+    assert translation_direction_error_deg(pose.t[0], short.t) < 10 and pose.inlier_mask[0].sum() > 150
+    assert not pose.inlier_mask[1].any() and torch.equal(pose.t[1], torch.zeros(3, **DOUBLE))
+    single = torchsfm.estimate_relative_pose(short.x1, short.x2, short.K1, short.K2, generator=_generator())
+    assert translation_direction_error_deg(single.t, short.t) < 10

@@ -112,6 +112,8 @@ def test_bad_input():
     X, x, _, _, _ = _scene(20)
     with pytest.raises(NotEnoughDataError, match="at least 6, got 5"):
         torchsfm.estimate_absolute_pose(X[:5], x[:5], K)
+    with pytest.raises(NotEnoughDataError, match="at least 6, got 0"):
+        torchsfm.estimate_absolute_pose(X[:0], x[:0], K)
     with pytest.raises(ShapeError):
         torchsfm.estimate_absolute_pose(X, x[:10], K)
     with pytest.raises(DegenerateConfigurationError, match="K is singular"):

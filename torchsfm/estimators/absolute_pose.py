@@ -63,7 +63,7 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
     check_floating(X=X, x=x, K=K)
     check_intrinsics(K=K)
     unbatched = X.dim() == 2
-    X64, x64 = X.double().reshape(-1, sizes["N"], 3), x.double().reshape(-1, sizes["N"], 2)
+    X64, x64 = (X.double(), x.double()) if X.dim() == 3 else (X.double()[None], x.double()[None])
     B = X64.shape[0]
     if valid is None:
         check_finite(X=X, x=x)

@@ -16,7 +16,7 @@ from torch import Tensor, nn
 from torchsfm.camera import check_intrinsics, projection_matrix
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
-from torchsfm.geometry.essential import essential_from_fundamental
+from torchsfm.geometry.essential import essential_from_fundamental, parallax_is_noise
 from torchsfm.geometry.fundamental import fundamental_from_pose, sampson_error
 from torchsfm.estimators.fundamental_refinement import refine_fundamental
 from torchsfm.geometry.triangulation import triangulate_points
@@ -80,7 +80,7 @@ def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) 
         raise ShapeError(f"x1 and x2 must both be (N, 2) or (B, N, 2), got {tuple(x1.shape)} and {tuple(x2.shape)}")
     check_floating(x1=x1, x2=x2)
     unbatched = x1.dim() == 2
-    x1, x2 = (x.double().reshape(-1, sizes["N"], 2) for x in (x1, x2))
+    x1, x2 = (x.double() if not unbatched else x.double()[None] for x in (x1, x2))
     if valid is None:
         check_finite(x1=x1, x2=x2)
         check_min_count("x1", sizes["N"], 8, "the 8-point algorithm (correspondences)")
@@ -233,6 +233,15 @@ def estimate_relative_pose(
         x1f, x2f, K1f, K2f = x1b[found], x2b[found], K1b[found], K2b[found]
         Rf, tf, inf = calibrated_pose(essential_from_fundamental(F[found], K1f, K2f), x1f, x2f, K1f, K2f, candidates[found],
                                       config, generator, mask[found])
+        no_parallax, parallax = parallax_is_noise(Rf, tf, x1f, x2f, K1f, K2f, inf, config.fundamental.ransac.inlier_threshold,
+                                                  config.relative_pose.parallax_significance)
+        if valid is None and bool(no_parallax.any()):
+            b = int(torch.nonzero(no_parallax)[0, 0])
+            raise DegenerateConfigurationError(
+                f"the correspondences{'' if unbatched else f' of problem {int(found[b])}'} show no parallax beyond noise "
+                f"(median {float(parallax[b]):.2f} px along the epipolar lines of {int(inf[b].sum())} inliers): a rotation "
+                "alone explains them — the camera turned in place or did not move — so the translation is undetermined")
+        inf = inf & ~no_parallax[:, None]
         P1 = projection_matrix(K1f, torch.eye(3, dtype=torch.float64, device=K1b.device).expand(found.numel(), 3, 3),
                                torch.zeros(found.numel(), 3, dtype=torch.float64, device=K1b.device))
         Xf = triangulate_points(x1f, x2f, P1, projection_matrix(K2f, Rf, tf), config.triangulation)  # (B', N, 3)

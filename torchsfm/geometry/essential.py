@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.geometry.rotation import nearest_rotation, quaternion_to_rotation, skew
-from torchsfm.numerics import floor_tiny
+from torchsfm.numerics import chi2_quantile, floor_tiny
 
 
 def essential_from_fundamental(F: Tensor, K1: Tensor, K2: Tensor) -> Tensor:
@@ -188,3 +188,32 @@ def parallax_from_infinity(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> Tens
     direction = (t[..., None, :2] - at_infinity * t[..., None, 2:]) * torch.sign(ray[..., 2:])
     direction = direction / floor_tiny(direction.norm(dim=-1, keepdim=True))
     return ((x2 - at_infinity) * direction).sum(-1)
+
+
+def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, inliers: Tensor,
+                      threshold: float, significance: float) -> tuple[Tensor, Tensor]:
+    """Whether a relative pose's translation is undetermined: its inliers' parallax along their
+    epipolar lines (:func:`parallax_from_infinity`, in pixels of image 2) is what noise alone
+    gives, as if a rotation alone (the camera turned in place, or did not move) had moved them.
+
+    Noise model: the inlier ``threshold`` bounds the Sampson distance at 2σ, σ the noise of each
+    image coordinate; a point at infinity's parallax then has variance 2σ² (x2's noise, and x1's
+    carried over by the rotation). The translation is undetermined where the inliers' summed
+    squared parallax over 2σ² stays within the χ² quantile of 1 − ``significance`` for as many
+    degrees of freedom as inliers (one parallax each).
+
+    Args:
+        R, t: (B, 3, 3), (B, 3) poses (``X2 = R X1 + t``); x1, x2: (B, N, 2) pixels; K1, K2:
+            (B, 3, 3); inliers: (B, N) bool.
+
+    Returns:
+        (B,) bool, undetermined; and (B,) the median absolute parallax of the inliers (px; 0
+        without inliers).
+    """
+    at_infinity = K2 @ R @ torch.linalg.inv(K1)  # pixels of image 1 -> image 2's pixels of the same rays
+    parallax = parallax_from_infinity(at_infinity, (K2 @ t[..., None])[..., 0], x1, x2)  # (B, N) px
+    sigma_sq = (threshold / 2) ** 2
+    statistic = torch.where(inliers, parallax.square(), 0.0).sum(-1) / (2 * sigma_sq)
+    count = inliers.sum(-1)
+    median = torch.where(inliers, parallax.abs(), torch.nan).nanmedian(-1).values.nan_to_num(0.0)
+    return (count > 0) & (statistic <= chi2_quantile(count, 1 - significance)), median

@@ -31,7 +31,7 @@ def weighted_rows_first(weights: Tensor, *data: Tensor) -> tuple[Tensor, ...]:
     weights pad the rest; the inputs themselves where no row is dropped): a least-squares fit
     then costs what its weighted rows need, not what its outliers would."""
     weighted = weights > 0
-    M = max(1, int(weighted.sum(-1).max()))
+    M = max(1, int(weighted.sum(-1).amax())) if weighted.shape[0] else 1
     if M == weights.shape[-1]:
         return (weights, *data)
     rows = torch.argsort(weighted.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :M]

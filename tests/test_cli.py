@@ -108,6 +108,28 @@ def test_unknown_config_key(tmp_path, capsys):
     _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE2), "--K", str(K_FILE), "--config", str(config)], "matching.radius")
 
 
+@pytest.mark.parametrize("case, message", [("missing", "no such file or folder"), ("empty", "holds no images (.jpeg, .jpg, .png)"),
+                                           ("out_is_a_file", "is a file")])
+def test_reconstruct_refuses_a_wrong_path_before_any_work(tmp_path, capsys, case, message):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "file").write_text("x")
+    inputs = {"missing": [str(tmp_path / "nope")], "empty": [str(tmp_path / "empty")]}.get(case, [str(IMAGE1), str(IMAGE2)])
+    out = tmp_path / ("file" if case == "out_is_a_file" else "out")
+    assert main(["reconstruct", *inputs, "--K", str(K_FILE), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torchsfm: error: ") and message in err[0], err
+    assert not (tmp_path / "out").exists() and (tmp_path / "file").read_text() == "x"
+
+
+def test_a_refused_write_is_an_error_naming_the_file(tmp_path):
+    from torchsfm.actions import write_files
+    from torchsfm.errors import InputError
+
+    (tmp_path / "taken").write_text("x")  # a file where the output folder should go
+    with pytest.raises(InputError, match="cannot write .*taken/summary.json"):
+        write_files(tmp_path / "taken", {"summary.json": "{}"})
+
+
 def test_module_entry_point():
     result = subprocess.run([sys.executable, "-m", "torchsfm", "--help"], capture_output=True, text=True)
     assert result.returncode == 0 and "two-view" in result.stdout

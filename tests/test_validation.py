@@ -26,6 +26,8 @@ def test_finite_floating_and_counts():
         check_finite(x=torch.tensor([1.0, float("nan")]))
     with pytest.raises(InputError, match="floating-point"):
         check_floating(x=torch.zeros(3, dtype=torch.long))
+    with pytest.raises(InputError, match="x must be a torch.Tensor, got list"):
+        check_floating(x=[1.0, 2.0])
     with pytest.raises(NotEnoughDataError, match="needs at least 8, got 7"):
         check_min_count("x1", 7, 8, "the 8-point algorithm")
 

@@ -7,6 +7,7 @@ atomically, so that a failure leaves no partial model behind.
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -80,16 +81,31 @@ def model_files(model: Reconstruction, image1: Tensor, image2: Tensor, summary: 
     return files
 
 
+def check_writable(out: str | Path) -> None:
+    """Raise :class:`InputError` before any work where ``out`` cannot be written: it is a file
+    where a folder is meant, or the nearest folder that exists above it is not writable."""
+    out = Path(out).absolute()
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder {out} is a file")
+    existing = next(folder for folder in (out, *out.parents) if folder.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write the output folder {out}: {existing} is not a writable folder")
+
+
 def write_files(out: Path, files: dict[str, bytes | str | Tensor]) -> None:
-    """Write prepared outputs under ``out`` (created if needed), each file atomically."""
+    """Write prepared outputs under ``out`` (created if needed), each file atomically; a file
+    system's refusal is an :class:`InputError` naming the file."""
     for name, content in files.items():
         path = out / name
-        if isinstance(content, Tensor):
-            write_png(path, content)
-        elif isinstance(content, bytes):
-            atomic_write_bytes(path, content)
-        else:
-            atomic_write_text(path, content)
+        try:
+            if isinstance(content, Tensor):
+                write_png(path, content)
+            elif isinstance(content, bytes):
+                atomic_write_bytes(path, content)
+            else:
+                atomic_write_text(path, content)
+        except OSError as error:
+            raise InputError(f"cannot write {path}: {error.strerror or error}") from error
 
 
 def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path, *, distortion: Tensor | None = None,
@@ -99,6 +115,7 @@ def two_view(image1: str | Path, image2: str | Path, K: Tensor, out: str | Path,
     text, a PNG and a JSON summary into ``out``. ``third`` is the frame after image2, read when
     moving-object rejection is on. Returns the summary."""
     config = config or Config()
+    check_writable(out)
     start = time.perf_counter()
     first, second = read_image(image1), read_image(image2)
     third_image = read_image(third) if third is not None and config.moving_objects.enabled else None
@@ -116,13 +133,20 @@ IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
 
 
 def image_paths(inputs: list[str | Path]) -> list[Path]:
-    """Image files from a list of files and/or folders (a folder contributes its sorted images)."""
+    """Image files from a list of files and/or folders (a folder contributes its sorted images).
+    A path that does not exist, or a folder without images, is an :class:`InputError` (a file
+    that exists but cannot be read is left out by :func:`torchsfm.reconstruct`, with the reason)."""
     paths: list[Path] = []
     for item in map(Path, inputs):
         if item.is_dir():
-            paths += sorted(p for p in item.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        else:
+            found = sorted(p for p in item.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not found:
+                raise InputError(f"folder {item} holds no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+            paths += found
+        elif item.exists():
             paths.append(item)
+        else:
+            raise InputError(f"no such file or folder: {item}")
     return paths
 
 
@@ -207,6 +231,7 @@ def reconstruct_sequence(inputs: list[str | Path], K: Tensor | None, out: str | 
     ``out/other_models/k/``). ``masks``: where features may be detected (:func:`mask_paths`).
     Returns the summary (``K``: the intrinsics used)."""
     config = config or Config()
+    check_writable(out)
     start = time.perf_counter()
     paths = image_paths(inputs)
     model = reconstruct(paths, K, distortion=distortion, config=config, generator=torch.Generator().manual_seed(seed),
@@ -245,7 +270,7 @@ def demo(out: str | Path, *, progress: Progress | None = None) -> dict:
     R, t = torch.tensor(summary["R"], dtype=torch.float64), torch.tensor(summary["t"], dtype=torch.float64)
     summary["ground_truth"] = {"rotation_error_deg": rotation_error_deg(R, R_true),
                                "translation_direction_error_deg": translation_direction_error_deg(t, t_true)}
-    atomic_write_text(Path(out) / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_files(Path(out), {"summary.json": json.dumps(summary, indent=2) + "\n"})
     return summary
 
 
@@ -260,6 +285,7 @@ def calibrate(inputs: list[str | Path], pattern: tuple[int, int], square: float,
     ``calibration.min_views`` boards are found.
     """
     config = config or Config()
+    check_writable(Path(out).parent)
     paths = image_paths(inputs)
     state = BoardViews(images=paths, names=[path.name for path in paths], pattern=pattern, square=square,
                        report=progress or (lambda message: None))
@@ -271,5 +297,5 @@ def calibrate(inputs: list[str | Path], pattern: tuple[int, int], square: float,
     text = calibration_yaml(state.calibration, image_size=state.sizes.pop(), pattern=pattern, square=square,
                             views=list(state.corners), not_found=state.not_found)
     write_files(folder, {f"{stem}.png": figure for stem, figure in figures.items()})
-    atomic_write_text(out, text)
+    write_files(out.parent, {out.name: text})
     return {**yaml.safe_load(text), "corners_folder": str(folder)}

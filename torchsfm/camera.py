@@ -22,8 +22,8 @@ import torch
 from kornia.geometry.transform import remap
 from torch import Tensor
 
-from torchsfm.errors import DegenerateConfigurationError, InputError
-from torchsfm.validation import check_finite, check_shapes
+from torchsfm.errors import DegenerateConfigurationError, InputError, ShapeError
+from torchsfm.validation import check_finite, check_floating, check_shapes
 from torchsfm.numerics import floor_tiny
 
 FOCAL_PRIOR = 1.2  # × the larger image side: the focal length of a camera without calibration (a common field of view, as COLMAP's)
@@ -67,6 +67,16 @@ def check_intrinsics(**matrices: Tensor) -> None:
             bad = K[..., [0, 1], [0, 1]][(focal <= 0).any(-1)][0].tolist()
             raise InputError(f"{name} has a focal length that is not positive (fx, fy = {bad[0]:g}, {bad[1]:g}): "
                              "an intrinsic matrix has fx, fy > 0 (with K[2, 2] > 0)")
+
+
+def intrinsics_per_view(K: Tensor, count: int, name: str = "K") -> Tensor:
+    """One checked (:func:`check_intrinsics`) K for all ``count`` views, (3, 3), or one per view,
+    (count, 3, 3) -> (count, 3, 3) float64; any other shape is a ShapeError that names both."""
+    check_floating(**{name: K})
+    check_intrinsics(**{name: K})
+    if K.dim() not in (2, 3) or (K.dim() == 3 and K.shape[0] != count):
+        raise ShapeError(f"{name} must be (3, 3) or ({count}, 3, 3), got {tuple(K.shape)}")
+    return K.double().expand(count, 3, 3)
 
 
 def projection_matrix(K: Tensor, R: Tensor, t: Tensor) -> Tensor:

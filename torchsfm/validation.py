@@ -61,6 +61,8 @@ def check_min_count(name: str, count: int, minimum: int, what: str) -> None:
 def check_floating(**tensors: Tensor) -> None:
     """Raise :class:`InputError` for integer or boolean tensors where coordinates are expected."""
     for name, tensor in tensors.items():
+        if not isinstance(tensor, Tensor):
+            raise InputError(f"{name} must be a torch.Tensor, got {type(tensor).__name__}")
         if not tensor.is_floating_point():
             raise InputError(f"{name} must be a floating-point tensor, got {tensor.dtype}")
 

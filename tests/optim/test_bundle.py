@@ -204,6 +204,26 @@ def test_bad_input():
     with pytest.raises(InputError, match="NaN"):
         BundleProblem("pinhole", problem.rotations, problem.translations, problem.intrinsics, problem.points * float("nan"),
                       problem.camera_index, problem.point_index, problem.observations)
+    with pytest.raises(InputError, match="must share one dtype, got rotations torch.float64, .* points torch.float32"):
+        BundleProblem("pinhole", problem.rotations, problem.translations, problem.intrinsics, problem.points.float(),
+                      problem.camera_index, problem.point_index, problem.observations)
+    with pytest.raises(InputError, match="camera_index must be an integer tensor, got torch.float32"):
+        BundleProblem("pinhole", problem.rotations, problem.translations, problem.intrinsics, problem.points,
+                      problem.camera_index.float(), problem.point_index, problem.observations)
+    sheared = problem.rotations.clone()
+    sheared[1, 0, 1] += 1e-3
+    with pytest.raises(InputError, match=r"rotations\[1\] is not a rotation matrix"):
+        BundleProblem("pinhole", sheared, problem.translations, problem.intrinsics, problem.points,
+                      problem.camera_index, problem.point_index, problem.observations)
+    with pytest.raises(InputError, match=r"rotations\[2\] is not a rotation matrix"):  # a reflection
+        BundleProblem("pinhole", problem.rotations * torch.tensor([1.0, 1.0, -1.0, -1.0])[:3, None, None].double(), problem.translations,
+                      problem.intrinsics, problem.points, problem.camera_index, problem.point_index, problem.observations)
+    with pytest.raises(ShapeError, match="fixed_cameras has C=2 but rotations has C=3"):
+        BundleProblem("pinhole", problem.rotations, problem.translations, problem.intrinsics, problem.points,
+                      problem.camera_index, problem.point_index, problem.observations, fixed_cameras=torch.ones(2, dtype=torch.bool))
+    with pytest.raises(InputError, match="fixed_cameras must be a bool tensor"):
+        BundleProblem("pinhole", problem.rotations, problem.translations, problem.intrinsics, problem.points,
+                      problem.camera_index, problem.point_index, problem.observations, fixed_cameras=torch.tensor([1, 0, 0]))
 
 
 @pytest.mark.parametrize("solver", ["dense", "cg"])

@@ -110,6 +110,10 @@ def test_bad_input_is_named():
     with pytest.raises(ShapeError, match="tracks must be an"):
         reconstruct_tracks(torch.zeros(3, 10), torch.eye(3))
     scene = synthetic_moving_scene(0, num_frames=3, num_objects=0, background_points=20)
+    with pytest.raises(ShapeError, match=r"K must have shape \(\*, 3, 3\), got \(2, 2\)"):
+        reconstruct_tracks(scene.tracks, torch.eye(2))
+    with pytest.raises(ShapeError, match=r"K must be \(3, 3\) or \(3, 3, 3\), got \(2, 3, 3\)"):
+        reconstruct_tracks(scene.tracks, scene.K.expand(2, 3, 3))
     with pytest.raises(NotEnoughDataError, match="no frame pair shares 30 tracks"):
         reconstruct_tracks(scene.tracks, scene.K)
 

@@ -127,10 +127,12 @@ def test_a_view_with_too_few_points_is_posed_from_its_verified_pair_and_scaled_b
 
 
 def test_a_pair_pose_whose_length_no_point_fixes_is_refused():
-    """Forward motion: cameras 1 m apart along their optical axis, the 5 points view 2 sees 20-40
-    m ahead within 1 m of the axis (near the epipole). Every point agrees with the pair's pose
-    whatever the translation's length (10 % of it moves them by 0.1 px at most, under the 2 px
-    threshold), so the pose is refused and the reason says that no point fixes the length."""
+    """Forward motion: cameras 1 m apart along their optical axis, the 5 reconstructed points view
+    2 sees 20-40 m ahead within 1 m of the axis (near the epipole; the pair's other 35 matches,
+    4-8 m ahead and wider, give its pose parallax). Every reconstructed point agrees with the
+    pair's pose whatever the translation's length (10 % of it moves them by 0.1 px at most,
+    under the 2 px threshold), so the pose is refused and the reason says that no point fixes
+    the length."""
     from torchsfm.sfm.mapping import pose_from_pair
     from torchsfm.sfm.view_pairs import PairMatches
 
@@ -138,6 +140,8 @@ def test_a_pair_pose_whose_length_no_point_fixes_is_refused():
     K = torch.tensor([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]], dtype=torch.float64)
     points = torch.cat([torch.rand(40, 2, generator=generator, dtype=torch.float64) * 2 - 1,
                         20 + 20 * torch.rand(40, 1, generator=generator, dtype=torch.float64)], -1)
+    points[5:, :2] *= 3
+    points[5:, 2] = 4 + 4 * torch.rand(35, generator=generator, dtype=torch.float64)
     R = torch.eye(3, dtype=torch.float64).expand(3, 3, 3).clone()
     t = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, -2.0]], dtype=torch.float64)
     corners = [project(projection_matrix(K, R[v], t[v]), points) for v in range(3)]

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchsfm.camera import check_intrinsics
+from torchsfm.camera import intrinsics_per_view
 from torchsfm.config import Config
 from torchsfm.errors import NotEnoughDataError, ShapeError
 from torchsfm.estimators.resection_refinement import refine_pose
@@ -57,11 +57,10 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
     """
     config = config or Config()
     settings = config.resection
-    sizes = check_shapes(X=(X, "* N 3"), x=(x, "* N 2"), K=(K, "* 3 3"))
+    sizes = check_shapes(X=(X, "* N 3"), x=(x, "* N 2"))
     if X.dim() not in (2, 3) or X.shape[:-2] != x.shape[:-2]:
         raise ShapeError(f"X and x must be (N, 3) and (N, 2), or batched alike, got {tuple(X.shape)} and {tuple(x.shape)}")
-    check_floating(X=X, x=x, K=K)
-    check_intrinsics(K=K)
+    check_floating(X=X, x=x)
     unbatched = X.dim() == 2
     X64, x64 = (X.double(), x.double()) if X.dim() == 3 else (X.double()[None], x.double()[None])
     B = X64.shape[0]
@@ -71,10 +70,10 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
     else:
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool or unbatched or valid.shape != X64.shape[:2]:
             raise ShapeError(f"valid must be a bool tensor of shape (B, N) = {tuple(X.shape[:-1])} with batched X, got "
-                             f"{tuple(valid.shape) if isinstance(valid, Tensor) else type(valid).__name__}")
+                             f"{f'{valid.dtype} {tuple(valid.shape)}' if isinstance(valid, Tensor) else type(valid).__name__}")
         check_finite(X=X64[valid], x=x64[valid])
         X64, x64 = fill_padding(X64, valid), fill_padding(x64, valid)
-    K64 = K.double().expand(B, 3, 3) if K.dim() == 2 else K.double()
+    K64 = intrinsics_per_view(K, B)
     data = torch.cat([X64, x64], dim=-1)
     found = ransac(ResectionModel(K64, settings.solver), data, settings.ransac, valid=valid, generator=generator)
     success = found.success

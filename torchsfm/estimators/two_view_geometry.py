@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from torchsfm.camera import check_intrinsics, projection_matrix
+from torchsfm.camera import intrinsics_per_view, projection_matrix
 from torchsfm.config import Config
 from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
 from torchsfm.geometry.essential import essential_from_fundamental, parallax_is_noise
@@ -88,7 +88,7 @@ def _check_correspondences(x1: Tensor, x2: Tensor, valid: Tensor | None = None) 
     else:
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool or valid.shape != x1.shape[:2]:
             raise ShapeError(f"valid must be a bool tensor of shape {tuple(x1.shape[:2])}, got "
-                             f"{tuple(valid.shape) if isinstance(valid, Tensor) else type(valid).__name__}")
+                             f"{f'{valid.dtype} {tuple(valid.shape)}' if isinstance(valid, Tensor) else type(valid).__name__}")
         mask = valid
         check_finite(x1=x1[mask], x2=x2[mask])
         x1, x2 = (torch.where(mask[..., None], x, 0.0) for x in (x1, x2))
@@ -166,8 +166,8 @@ def estimate_fundamental(
         distinct points.
     """
     config = config or Config()
-    dtype = x1.dtype
     x1b, x2b, unbatched, mask = _check_correspondences(x1, x2, valid)
+    dtype = x1.dtype
     F, inliers, trials, success = _robust_fundamental(x1b, x2b, config, generator, mask)
     if valid is None:
         _raise_on_failure(success, unbatched)
@@ -209,14 +209,10 @@ def estimate_relative_pose(
         A :class:`RelativePose` (camera 2 from camera 1, unit t).
     """
     config = config or Config()
-    dtype = x1.dtype
     x1b, x2b, unbatched, mask = _check_correspondences(x1, x2, valid)
+    dtype = x1.dtype
     B = x1b.shape[0]
-    check_floating(K1=K1, K2=K2)
-    check_intrinsics(K1=K1, K2=K2)
-    K1b, K2b = (K.double().expand(B, 3, 3) if K.dim() == 2 else K.double() for K in (K1, K2))
-    if K1b.shape[0] != B or K2b.shape[0] != B:
-        raise ShapeError(f"K1 and K2 must be (3, 3) or ({B}, 3, 3), got {tuple(K1.shape)} and {tuple(K2.shape)}")
+    K1b, K2b = intrinsics_per_view(K1, B, "K1"), intrinsics_per_view(K2, B, "K2")
 
     if config.relative_pose.solver == "five_point":
         F, candidates, trials, success = _robust_essential(x1b, x2b, K1b, K2b, config, generator, mask)

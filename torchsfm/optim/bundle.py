@@ -38,13 +38,14 @@ from torchsfm.errors import InputError
 from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.inference import without_autograd
 from torchsfm.optim.lm import minimize
-from torchsfm.validation import check_finite, check_shapes
+from torchsfm.validation import check_finite, check_floating, check_shapes
 from torchsfm.numerics import floor_tiny
 
 CAMERA_DOF = {"pinhole": 6, "bal": 9}
 DENSE_BUFFER_BYTES = 2**29  # the dense solver's GEMM path holds two (3 P, C dc) buffers only up to this size
 BLOCK_CHUNK_NUMBERS = 2**22  # its block path forms the camera-pair blocks of this many numbers at a time (32 MiB)
 BLOCK_NUMBER_FLOPS = 100  # measured: forming and adding one number of a camera-pair block costs about this many GEMM flops
+ROTATION_TOLERANCE = 1e-5  # largest |RᵀR − I| entry: a rotation written with 6 significant digits passes, a scaled one does not
 INTRINSIC_PARAMETERS = {"f": (1.0, 1.0, 0.0, 0.0, 0.0), "fx": (1.0, 0.0, 0.0, 0.0, 0.0), "fy": (0.0, 1.0, 0.0, 0.0, 0.0),
                         "cx": (0.0, 0.0, 1.0, 0.0, 0.0), "cy": (0.0, 0.0, 0.0, 1.0, 0.0),
                         "k1": (0.0, 0.0, 0.0, 0.0, 1.0)}  # each one's direction in (fx, fy, cx, cy, k1)
@@ -90,15 +91,31 @@ class BundleProblem:
                      intrinsics=(self.intrinsics, intrinsics_spec), points=(self.points, "P 3"),
                      camera_index=(self.camera_index, "O"), point_index=(self.point_index, "O"),
                      observations=(self.observations, "O 2"))
-        check_finite(rotations=self.rotations, translations=self.translations, intrinsics=self.intrinsics,
-                     points=self.points, observations=self.observations)
+        floating = dict(rotations=self.rotations, translations=self.translations, intrinsics=self.intrinsics,
+                        points=self.points, observations=self.observations)
+        check_floating(**floating)
+        if len({x.dtype for x in floating.values()}) > 1:
+            raise InputError("rotations, translations, intrinsics, points and observations must share one dtype, got "
+                             + ", ".join(f"{name} {x.dtype}" for name, x in floating.items()))
+        check_finite(**floating)
+        for name, index in (("camera_index", self.camera_index), ("point_index", self.point_index)):
+            if index.dtype.is_floating_point or index.dtype.is_complex or index.dtype == torch.bool:
+                raise InputError(f"{name} must be an integer tensor, got {index.dtype}")
         C, P = self.rotations.shape[0], self.points.shape[0]
+        gram = self.rotations.transpose(-1, -2) @ self.rotations - torch.eye(3, dtype=self.rotations.dtype, device=self.rotations.device)
+        proper = torch.linalg.det(self.rotations) > 0
+        if C and (float(gram.abs().amax()) > ROTATION_TOLERANCE or not bool(proper.all())):
+            bad = int(((gram.abs().amax((-2, -1)) > ROTATION_TOLERANCE) | ~proper).nonzero()[0, 0])
+            raise InputError(f"rotations[{bad}] is not a rotation matrix (RᵀR = I within {ROTATION_TOLERANCE:g}, det R = +1)")
         if self.camera_index.numel() and (int(self.camera_index.min()) < 0 or int(self.camera_index.max()) >= C):
             raise InputError(f"camera_index must lie in [0, {C})")
         if self.point_index.numel() and (int(self.point_index.min()) < 0 or int(self.point_index.max()) >= P):
             raise InputError(f"point_index must lie in [0, {P})")
         if self.fixed_cameras is None:
             self.fixed_cameras = torch.zeros(C, dtype=torch.bool, device=self.points.device)
+        check_shapes(rotations=(self.rotations, "C 3 3"), fixed_cameras=(self.fixed_cameras, "C"))
+        if self.fixed_cameras.dtype != torch.bool:
+            raise InputError(f"fixed_cameras must be a bool tensor (True: held fixed), got {self.fixed_cameras.dtype}")
         names = self.shared_intrinsics
         if any(name not in INTRINSIC_PARAMETERS for name in names) or len(set(names)) < len(names) or ("f" in names and ({"fx", "fy"} & set(names))):
             raise InputError(f"shared_intrinsics must name distinct ones of {', '.join(INTRINSIC_PARAMETERS)} (f or fx / fy), got {names}")

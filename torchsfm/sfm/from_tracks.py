@@ -19,9 +19,9 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from torchsfm.camera import check_intrinsics, to_homogeneous
+from torchsfm.camera import intrinsics_per_view, to_homogeneous
 from torchsfm.config import Config
-from torchsfm.errors import InputError, NotEnoughDataError, TorchSfmError
+from torchsfm.errors import NotEnoughDataError, TorchSfmError
 from torchsfm.geometry.projective import triangulate_multiview
 from torchsfm.inference import without_autograd
 from torchsfm.moving.segmentation import MotionSegmentation, segment_motions
@@ -70,10 +70,7 @@ def reconstruct_tracks(tracks: Tensor, K: Tensor, visible: Tensor | None = None,
     config = config or Config()
     tracks, visible = check_tracks(tracks, visible, min_frames=2)
     F, N, _ = tracks.shape
-    K = K.double().expand(F, 3, 3) if K.dim() == 2 else K.double()
-    if K.shape != (F, 3, 3):
-        raise InputError(f"K must be (3, 3) or ({F}, 3, 3), got {tuple(K.shape)}")
-    check_intrinsics(K=K)
+    K = intrinsics_per_view(K, F)
     seen_twice = visible.sum(0) >= 2
     visible = visible & seen_twice
     corner_of = torch.cumsum(visible.long(), dim=1) - 1  # (F, N): each visible track's corner index in its frame

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchsfm.camera import check_intrinsics, rescale_intrinsics, rescale_pixels
+from torchsfm.camera import intrinsics_per_view, rescale_intrinsics, rescale_pixels
 from torchsfm.config import Config
 from torchsfm.errors import InputError, NotEnoughDataError, ShapeError
 from torchsfm.images import (check_mask, is_grey_bytes, one_camera, read_image, read_mask, reduce_image, reduce_mask, sizes_named,
@@ -100,12 +100,8 @@ def reconstruct(images: list[Tensor | str | Path], K: Tensor | None = None, *, d
         if distortion is not None:
             raise InputError("distortion needs K: give both, or neither")
         K = torch.eye(3, dtype=torch.float64)  # replaced once the image size is known
-    K = K.double()
     one_K = K.dim() == 2
-    K = K.expand(len(images), 3, 3) if one_K else K
-    if K.shape != (len(images), 3, 3):
-        raise InputError(f"K must be (3, 3) or ({len(images)}, 3, 3), got {tuple(K.shape)}")
-    check_intrinsics(K=K)
+    K = intrinsics_per_view(K, len(images))
     if distortion is not None:
         distortion = distortion.double()
         if distortion.shape not in ((2,), (len(images), 2)):

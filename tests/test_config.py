@@ -61,6 +61,8 @@ def test_overrides():
         with_overrides(Config(), ["fundamental.ransac.nope=1"])
     with pytest.raises(ConfigError, match="section.key=value"):
         with_overrides(Config(), ["no_equals_sign"])
+    with pytest.raises(ConfigError, match="config fundamental.ransac must be a mapping, got int"):
+        with_overrides(Config(), ["fundamental.ransac=1"])
 
 
 def test_unreadable_and_invalid_files(tmp_path):

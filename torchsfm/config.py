@@ -822,7 +822,7 @@ class Config:
 def _build(cls: type, values: Any, prefix: str) -> Any:
     """Build dataclass ``cls`` from a mapping, recursing into nested dataclasses, strictly."""
     if not isinstance(values, dict):
-        raise ConfigError(f"config {prefix or 'root'} must be a mapping, got {type(values).__name__}")
+        raise ConfigError(f"config {prefix.rstrip('.') or 'root'} must be a mapping, got {type(values).__name__}")
     hints = get_type_hints(cls)
     known = {f.name for f in dataclasses.fields(cls)}
     kwargs = {}

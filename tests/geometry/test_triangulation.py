@@ -114,6 +114,12 @@ def test_bad_input():
         torchsfm.triangulate(scene.x1, scene.x2, scene.P1, scene.P1 * 2)
     with pytest.raises(DegenerateConfigurationError, match="not a finite camera"):
         torchsfm.triangulate(scene.x1, scene.x2, torch.zeros(3, 4, **DOUBLE), scene.P2)
+    at_infinity = scene.x2.clone()  # point 3 seen along parallel rays: x2 ~ K2 R K1⁻¹ x1
+    ray = scene.K2 @ scene.R @ torch.linalg.solve(scene.K1, torch.cat([scene.x1[3], torch.ones(1, **DOUBLE)]))
+    at_infinity[3] = ray[:2] / ray[2]
+    for method in torchsfm.TRIANGULATION_METHODS:  # NaN, inf or a wrong finite point before
+        with pytest.raises(DegenerateConfigurationError, match=r"1 correspondence\(s\) have parallel rays \(the first: point 3\)"):
+            torchsfm.triangulate(scene.x1, at_infinity, scene.P1, scene.P2, method=method)
 
 
 @pytest.mark.parametrize("method", ["linear_eigen", "polynomial"])

@@ -227,6 +227,14 @@ def triangulate_points(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor, config: T
     return from_homogeneous(X)
 
 
+def parallel_rays(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tensor:
+    """(*, N) bool: the rays of pixels x1, x2 (*, N, 2) through finite cameras P1, P2 (*, 3, 4)
+    are parallel to float64 rounding (the sine of their angle at most 1e-12)."""
+    d1 = torch.linalg.solve(P1[..., None, :, :3], to_homogeneous(x1)[..., None])[..., 0]  # (*, N, 3) directions
+    d2 = torch.linalg.solve(P2[..., None, :, :3], to_homogeneous(x2)[..., None])[..., 0]
+    return torch.linalg.cross(d1, d2).norm(dim=-1) <= 1e-12 * d1.norm(dim=-1) * d2.norm(dim=-1)
+
+
 def triangulate(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor, method: str = "polynomial") -> Tensor:
     """Triangulate pixel correspondences seen by two cameras.
 
@@ -241,7 +249,8 @@ def triangulate(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor, method: str = "p
 
     Raises:
         ShapeError, InputError: malformed input or unknown method. DegenerateConfigurationError:
-        a camera with a singular left 3x3 block, or both cameras at the same centre.
+        a camera with a singular left 3x3 block, both cameras at the same centre, or a
+        correspondence whose two rays are parallel (a point at infinity: no finite position).
     """
     if method not in TRIANGULATION_METHODS:
         raise InputError(f"unknown triangulation method {method!r}; choose one of {', '.join(TRIANGULATION_METHODS)}")
@@ -260,5 +269,10 @@ def triangulate(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor, method: str = "p
     scale = torch.maximum(C1.norm(dim=-1), C2.norm(dim=-1)).clamp_min(1.0)
     if bool(((C1 - C2).norm(dim=-1) <= 1e-12 * scale).any()):
         raise DegenerateConfigurationError("P1 and P2 have the same centre: no baseline to triangulate from")
+    parallel = parallel_rays(x1.double(), x2.double(), P1d, P2d)
+    if bool(parallel.any()):
+        raise DegenerateConfigurationError(
+            f"{int(parallel.sum())} correspondence(s) have parallel rays (the first: point {int(parallel.flatten().nonzero()[0, 0]) % x1.shape[-2]}): "
+            "a point at infinity has no finite position")
     X = triangulate_points(x1.double(), x2.double(), P1d, P2d, TriangulationConfig(method=method))
     return X.to(x1.dtype)

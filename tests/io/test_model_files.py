@@ -80,6 +80,34 @@ def test_colmap_refuses_skew(tmp_path):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+@pytest.mark.parametrize("file, edit, message", [
+    ("cameras.txt", lambda text: text + "7 PINHOLE 640 480 abc 500 320 240\n", r"malformed line in COLMAP file .*cameras.txt: '7 PINHOLE"),
+    ("cameras.txt", lambda text: text.replace("2 PINHOLE 640 480 600 612 320 240", "2 OPENCV 640 480 600 612 320 240 0.1 0 0.001 0"),
+     r"camera 2 has tangential distortion \(p1, p2 = 0.001, 0\)"),
+    ("images.txt", lambda text: text.replace(" 1 a.jpg", " 9 a.jpg"), r"malformed line .*images.txt: '1 1 0 0 0 0 0 0 9 a.jpg' \(KeyError: 9\)"),
+    ("images.txt", lambda text: "", "holds no images"),
+    ("points3D.txt", lambda text: "\n".join(text.splitlines()[:-1]) + "\n", "observes points missing from points3D.txt"),
+])
+def test_a_malformed_colmap_model_is_named(tmp_path, file, edit, message):
+    """Each COLMAP file's damage is an InputError that names the file (before: ValueError,
+    KeyError or a RuntimeError from an empty stack, and an OPENCV camera's tangential terms
+    silently dropped)."""
+    write_colmap_text(tmp_path, _model())
+    path = tmp_path / file
+    path.write_text(edit(path.read_text()))
+    with pytest.raises(InputError, match=message):
+        read_colmap_text(tmp_path)
+
+
+def test_a_ply_refuses_what_a_viewer_would_choke_on(tmp_path):
+    model = _model()
+    with pytest.raises(InputError, match="points holds 3 NaN"):
+        write_ply(tmp_path / "p.ply", torch.where(torch.arange(40)[:, None] == 5, float("nan"), model.points3d), model.colors)
+    with pytest.raises(InputError, match="colors must be uint8"):
+        write_ply(tmp_path / "p.ply", model.points3d, model.colors.float())
+    assert not any(tmp_path.iterdir())
+
+
 def test_vrml_holds_the_points_and_a_pyramid_per_camera(tmp_path):
     model = _model()
     text = vrml_text(model)

@@ -9,6 +9,7 @@ K with skew is refused rather than silently changed.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -84,56 +85,64 @@ def _data_lines(path: Path) -> list[str]:
 
 def read_colmap_text(folder: str | Path) -> Reconstruction:
     """Read a COLMAP text model written by COLMAP or :func:`write_colmap_text` (PINHOLE,
-    SIMPLE_PINHOLE, OPENCV, RADIAL and SIMPLE_RADIAL cameras) into torchsfm's conventions."""
+    SIMPLE_PINHOLE, OPENCV without tangential distortion, RADIAL and SIMPLE_RADIAL cameras) into
+    torchsfm's conventions. A malformed line is an :class:`InputError` naming its file and line."""
     folder = Path(folder)
     cameras = {}
-    for line in _data_lines(folder / "cameras.txt"):
-        if not line.strip():
-            continue
-        fields = line.split()
-        camera_id, model_name, width, height = int(fields[0]), fields[1], int(fields[2]), int(fields[3])
-        params = [float(v) for v in fields[4:]]
-        if model_name == "PINHOLE":
-            fx, fy, cx, cy, k1, k2 = *params, 0.0, 0.0
-        elif model_name == "SIMPLE_PINHOLE":
-            (fx, cx, cy), fy, k1, k2 = params, params[0], 0.0, 0.0
-        elif model_name in ("OPENCV", "RADIAL", "SIMPLE_RADIAL"):
-            if model_name == "OPENCV":
-                fx, fy, cx, cy, k1, k2 = params[:6]
+    for line in _lines_of(folder / "cameras.txt"):
+        with _parsing(folder / "cameras.txt", line):
+            fields = line.split()
+            camera_id, model_name, width, height = int(fields[0]), fields[1], int(fields[2]), int(fields[3])
+            params = [float(v) for v in fields[4:]]
+            if model_name == "PINHOLE":
+                fx, fy, cx, cy, k1, k2 = *params, 0.0, 0.0
+            elif model_name == "SIMPLE_PINHOLE":
+                (fx, cx, cy), fy, k1, k2 = params, params[0], 0.0, 0.0
+            elif model_name == "OPENCV":
+                fx, fy, cx, cy, k1, k2, p1, p2 = params
+                if p1 or p2:
+                    raise InputError(f"COLMAP camera {camera_id} has tangential distortion (p1, p2 = {p1:g}, {p2:g}), "
+                                     "which torchsfm's camera (k1, k2) cannot hold")
             elif model_name == "RADIAL":
                 (fx, cx, cy, k1, k2), fy = params, params[0]
-            else:
+            elif model_name == "SIMPLE_RADIAL":
                 (fx, cx, cy, k1), fy, k2 = params, params[0], 0.0
-        else:
-            raise InputError(f"COLMAP camera model {model_name} is not supported (camera {camera_id})")
-        K = torch.tensor([[fx, 0.0, cx - PIXEL_SHIFT], [0.0, fy, cy - PIXEL_SHIFT], [0.0, 0.0, 1.0]], dtype=torch.float64)
-        cameras[camera_id] = (K, torch.tensor([k1, k2], dtype=torch.float64), (width, height))
+            else:
+                raise InputError(f"COLMAP camera model {model_name} is not supported (camera {camera_id})")
+            K = torch.tensor([[fx, 0.0, cx - PIXEL_SHIFT], [0.0, fy, cy - PIXEL_SHIFT], [0.0, 0.0, 1.0]], dtype=torch.float64)
+            cameras[camera_id] = (K, torch.tensor([k1, k2], dtype=torch.float64), (width, height))
     image_lines = _data_lines(folder / "images.txt")
     names, Ks, distortions, sizes, Rs, ts = [], [], [], [], [], []
     observed: list[tuple[int, int, float, float]] = []
     for header, points_line in zip(image_lines[0::2], image_lines[1::2]):
-        fields = header.split()
-        values = [float(v) for v in fields[1:8]]
-        K, distortion, size = cameras[int(fields[8])]
-        names.append(" ".join(fields[9:]))
-        Ks.append(K)
-        distortions.append(distortion)
-        sizes.append(size)
-        Rs.append(quaternion_to_rotation(torch.tensor(values[:4], dtype=torch.float64)))
-        ts.append(torch.tensor(values[4:], dtype=torch.float64))
-        entries = points_line.split()
-        for k in range(0, len(entries), 3):
-            x, y, point_id = float(entries[k]), float(entries[k + 1]), int(entries[k + 2])
-            if point_id >= 0:
-                observed.append((point_id, len(names) - 1, x - PIXEL_SHIFT, y - PIXEL_SHIFT))
+        with _parsing(folder / "images.txt", header):
+            fields = header.split()
+            values = [float(v) for v in fields[1:8]]
+            K, distortion, size = cameras[int(fields[8])]
+            names.append(" ".join(fields[9:]))
+            Ks.append(K)
+            distortions.append(distortion)
+            sizes.append(size)
+            Rs.append(quaternion_to_rotation(torch.tensor(values[:4], dtype=torch.float64)))
+            ts.append(torch.tensor(values[4:], dtype=torch.float64))
+        with _parsing(folder / "images.txt", points_line):
+            entries = points_line.split()
+            for k in range(0, len(entries), 3):
+                x, y, point_id = float(entries[k]), float(entries[k + 1]), int(entries[k + 2])
+                if point_id >= 0:
+                    observed.append((point_id, len(names) - 1, x - PIXEL_SHIFT, y - PIXEL_SHIFT))
+    if not names:
+        raise InputError(f"COLMAP model {folder} holds no images (images.txt)")
     point_ids, coordinates, colors = {}, [], []
-    for line in _data_lines(folder / "points3D.txt"):
-        if not line.strip():
-            continue
-        fields = line.split()
-        point_ids[int(fields[0])] = len(coordinates)
-        coordinates.append([float(v) for v in fields[1:4]])
-        colors.append([int(v) for v in fields[4:7]])
+    for line in _lines_of(folder / "points3D.txt"):
+        with _parsing(folder / "points3D.txt", line):
+            fields = line.split()
+            point_ids[int(fields[0])] = len(coordinates)
+            coordinates.append([float(v) for v in fields[1:4]])
+            colors.append([int(v) for v in fields[4:7]])
+    unknown = sorted({o[0] for o in observed} - point_ids.keys())
+    if unknown:
+        raise InputError(f"COLMAP model {folder}: images.txt observes points missing from points3D.txt (e.g. {unknown[0]})")
     return Reconstruction(
         cameras=Camera(K=torch.stack(Ks), R=torch.stack(Rs), t=torch.stack(ts), distortion=torch.stack(distortions)),
         image_names=names,
@@ -144,3 +153,18 @@ def read_colmap_text(folder: str | Path) -> Reconstruction:
         observation_views=torch.tensor([o[1] for o in observed], dtype=torch.long),
         keypoints=torch.tensor([[o[2], o[3]] for o in observed], dtype=torch.float64).reshape(-1, 2),
     )
+
+
+def _lines_of(path: Path) -> list[str]:
+    """The non-empty data lines of a COLMAP text file."""
+    return [line for line in _data_lines(path) if line.strip()]
+
+
+@contextmanager
+def _parsing(path: Path, line: str):
+    """Turn a malformed ``line`` of ``path`` (too few fields, not a number, an unknown id) into
+    an :class:`InputError` that quotes it."""
+    try:
+        yield
+    except (ValueError, IndexError, KeyError) as error:
+        raise InputError(f"malformed line in COLMAP file {path}: {line.strip()[:80]!r} ({type(error).__name__}: {error})") from None

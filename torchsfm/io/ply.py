@@ -5,13 +5,21 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 from torch import Tensor
 
+from torchsfm.errors import InputError
 from torchsfm.io.atomic import atomic_write_bytes
+from torchsfm.validation import check_finite, check_shapes
 
 
 def ply_bytes(points: Tensor, colors: Tensor) -> bytes:
-    """Binary little-endian PLY of (P, 3) points (written as float32) and (P, 3) uint8 colours."""
+    """Binary little-endian PLY of (P, 3) finite points (written as float32) and (P, 3) uint8
+    colours; anything else is an error, not a file a viewer chokes on."""
+    check_shapes(points=(points, "P 3"), colors=(colors, "P 3"))
+    check_finite(points=points)
+    if colors.dtype != torch.uint8:
+        raise InputError(f"colors must be uint8 (0-255), got {colors.dtype}")
     vertices = np.empty(points.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
                                                  ("red", "u1"), ("green", "u1"), ("blue", "u1")])
     xyz = points.detach().cpu().numpy()

@@ -48,6 +48,7 @@ def _fails(tmp_path, capsys, arguments, message):
 
 def test_missing_image(tmp_path, capsys):
     _fails(tmp_path, capsys, [str(tmp_path / "nope.jpg"), str(IMAGE2), "--K", str(K_FILE)], "no such file")
+    _fails(tmp_path, capsys, [str(tmp_path), str(IMAGE2), "--K", str(K_FILE)], "a folder, not an image file")
 
 
 def test_unreadable_image(tmp_path, capsys):

@@ -20,7 +20,7 @@ def read_image(path: str | Path) -> Tensor:
     Harris' relative threshold, NCC — is invariant to the gain)."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"cannot read image {path}: no such file")
+        raise InputError(f"cannot read image {path}: {'a folder, not an image file' if path.is_dir() else 'no such file'}")
     try:
         image = kornia.io.load_image(path, kornia.io.ImageLoadType.UNCHANGED)
     except Exception as error:  # kornia_rs raises ValueError, OSError or RuntimeError by format

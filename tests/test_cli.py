@@ -102,6 +102,22 @@ def test_identical_images_have_no_baseline(tmp_path, capsys):
     _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE1), "--K", str(K_FILE)], "show no baseline")
 
 
+def test_a_camera_turned_in_place_is_refused(tmp_path, capsys):
+    """The first view warped by K R K⁻¹ (3° about y, 0.6° about x): every match is explained by
+    the rotation, and the few mismatches F lets through along the epipolar lines fall on both
+    sides of infinity, so no translation is determined — one clear error, no model."""
+    from torchsfm.geometry.rotation import axis_angle_to_rotation
+    from torchsfm.io.datasets import read_strecha
+
+    K = read_strecha(SAMPLE).K[0].float()
+    R = axis_angle_to_rotation(torch.tensor([0.01, 0.0524, 0.0], dtype=torch.float64)).float()
+    image = read_image(IMAGE1).float()[None] / 255
+    turned = kornia.geometry.transform.warp_perspective(image, (K @ R @ torch.linalg.inv(K))[None], image.shape[-2:])
+    write_png(tmp_path / "turned.png", (turned[0] * 255).round().clamp(0, 255).to(torch.uint8))
+    _fails(tmp_path, capsys, [str(IMAGE1), str(tmp_path / "turned.png"), "--K", str(K_FILE)],
+           "show no parallax beyond noise")
+
+
 def test_unknown_config_key(tmp_path, capsys):
     _fails(tmp_path, capsys, [str(IMAGE1), str(IMAGE2), "--K", str(K_FILE), "--set", "harris.kk=0.05"], "harris.kk")
     config = tmp_path / "c.yaml"

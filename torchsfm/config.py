@@ -197,10 +197,11 @@ class RelativePoseConfig:
     settle on a wrong optimum: at 60 % outliers, one of ten synthetic scenes with RANSAC seed 0
     (1.7° in t, against 0.2° with the extra starts).
 
-    A pose whose inliers show no parallax beyond noise (the χ² test of
+    A pose whose inliers show no parallax beyond noise has no determined translation: the
+    camera turned in place or did not move. It is an error, not a pose (the sign test of
     :func:`~torchsfm.geometry.essential.parallax_is_noise` at ``parallax_significance``, with
-    the inlier threshold as 2σ of the Sampson distance) has no determined translation: the
-    camera turned in place or did not move. It is an error, not a pose.
+    the inlier threshold as 2σ of the Sampson distance: points in front of both cameras lie
+    beyond the noise on one side of infinity, mismatches along the epipolar lines on both).
     """
 
     method: PoseMethod = "svd"

@@ -1,10 +1,7 @@
 """Numeric helpers the batched engines share: the one guard of every division by a non-negative
-quantity that may be zero, the per-problem choice between two batched tensors, and the χ²
-quantile of the noise tests."""
+quantity that may be zero, and the per-problem choice between two batched tensors."""
 
 from __future__ import annotations
-
-import math
 
 import torch
 from torch import Tensor
@@ -19,10 +16,3 @@ def floor_tiny(x: Tensor) -> Tensor:
 def where_per_problem(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """Per problem, ``a`` where the (B,) ``condition`` holds, else ``b``: two (B, *M) tensors."""
     return torch.where(condition.reshape(-1, *([1] * (a.dim() - 1))), a, b)
-
-
-def chi2_quantile(dof: Tensor, probability: float) -> Tensor:
-    """Wilson–Hilferty approximation of the χ² quantile (relative error < 1% for dof >= 1)."""
-    z = math.sqrt(2) * torch.erfinv(torch.tensor(2 * probability - 1, dtype=torch.float64)).item()
-    k = dof.double().clamp_min(1)
-    return k * (1 - 2 / (9 * k) + z * torch.sqrt(2 / (9 * k))) ** 3

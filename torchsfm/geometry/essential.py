@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.geometry.rotation import nearest_rotation, quaternion_to_rotation, skew
-from torchsfm.numerics import chi2_quantile, floor_tiny
+from torchsfm.numerics import floor_tiny
 
 
 def essential_from_fundamental(F: Tensor, K1: Tensor, K2: Tensor) -> Tensor:
@@ -193,14 +193,17 @@ def parallax_from_infinity(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor) -> Tens
 def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, K2: Tensor, inliers: Tensor,
                       threshold: float, significance: float) -> tuple[Tensor, Tensor]:
     """Whether a relative pose's translation is undetermined: its inliers' parallax along their
-    epipolar lines (:func:`parallax_from_infinity`, in pixels of image 2) is what noise alone
-    gives, as if a rotation alone (the camera turned in place, or did not move) had moved them.
+    epipolar lines (:func:`parallax_from_infinity`, in pixels of image 2) is what a rotation
+    alone (the camera turned in place, or did not move) leaves, noise and mismatches.
 
     Noise model: the inlier ``threshold`` bounds the Sampson distance at 2σ, σ the noise of each
-    image coordinate; a point at infinity's parallax then has variance 2σ² (x2's noise, and x1's
-    carried over by the rotation). The translation is undetermined where the inliers' summed
-    squared parallax over 2σ² stays within the χ² quantile of 1 − ``significance`` for as many
-    degrees of freedom as inliers (one parallax each).
+    image coordinate; a point at infinity's parallax is then N(0, 2σ²) (x2's noise, and x1's
+    carried over by the rotation), beyond c = √2 σ z(1 − α/2) (α = ``significance``) on either
+    side as often. A point in front of both cameras lies beyond c on the positive side (the
+    cheirality test chose t's sign so), a mismatch that F let through along its epipolar line on
+    either side. So the translation is determined only where more inliers lie beyond c on the
+    positive side than a fair coin would put there among all those beyond c: a one-sided sign
+    test at α (exact binomial tail).
 
     Args:
         R, t: (B, 3, 3), (B, 3) poses (``X2 = R X1 + t``); x1, x2: (B, N, 2) pixels; K1, K2:
@@ -212,8 +215,12 @@ def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, 
     """
     at_infinity = K2 @ R @ torch.linalg.inv(K1)  # pixels of image 1 -> image 2's pixels of the same rays
     parallax = parallax_from_infinity(at_infinity, (K2 @ t[..., None])[..., 0], x1, x2)  # (B, N) px
-    sigma_sq = (threshold / 2) ** 2
-    statistic = torch.where(inliers, parallax.square(), 0.0).sum(-1) / (2 * sigma_sq)
-    count = inliers.sum(-1)
+    bound = threshold / math.sqrt(2) * math.sqrt(2) * torch.erfinv(torch.tensor(1 - significance, dtype=torch.float64)).item()
+    ahead = (inliers & (parallax > bound)).sum(-1)  # (B,)
+    beyond = ahead + (inliers & (parallax < -bound)).sum(-1)
+    count = torch.arange(x1.shape[-2] + 1, device=x1.device)  # (N + 1,) the binomial's outcomes
+    k, j = beyond[:, None].double(), count[None].double()
+    log_pmf = torch.lgamma(k + 1) - torch.lgamma(j + 1) - torch.lgamma((k - j).clamp_min(0) + 1) - k * math.log(2)
+    tail = torch.where((count[None] >= ahead[:, None]) & (count[None] <= beyond[:, None]), log_pmf, -torch.inf).logsumexp(-1)
     median = torch.where(inliers, parallax.abs(), torch.nan).nanmedian(-1).values.nan_to_num(0.0)
-    return (count > 0) & (statistic <= chi2_quantile(count, 1 - significance)), median
+    return tail > math.log(significance), median

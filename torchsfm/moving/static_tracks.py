@@ -31,6 +31,7 @@ and triangulation are well conditioned; residuals are reported in pixels.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -44,7 +45,7 @@ from torchsfm.geometry.projective import (
     projection_distance_squared,
     triangulate_multiview,
 )
-from torchsfm.numerics import chi2_quantile, floor_tiny
+from torchsfm.numerics import floor_tiny
 from torchsfm.robust.models import FundamentalModel, ProjectiveResectionModel
 from torchsfm.robust.ransac import ransac
 
@@ -73,6 +74,13 @@ class RigidGroup:
     camera_valid: Tensor
     reference: int
     partner: int
+
+
+def chi2_quantile(dof: Tensor, probability: float) -> Tensor:
+    """Wilson–Hilferty approximation of the χ² quantile (relative error < 1% for dof >= 1)."""
+    z = math.sqrt(2) * torch.erfinv(torch.tensor(2 * probability - 1, dtype=torch.float64)).item()
+    k = dof.double().clamp_min(1)
+    return k * (1 - 2 / (9 * k) + z * torch.sqrt(2 / (9 * k))) ** 3
 
 
 def rms_bound(sigma_sq: Tensor | float, dof: Tensor, terms: Tensor, significance: float, floor: float) -> Tensor:

@@ -215,7 +215,8 @@ def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, 
     """
     at_infinity = K2 @ R @ torch.linalg.inv(K1)  # pixels of image 1 -> image 2's pixels of the same rays
     parallax = parallax_from_infinity(at_infinity, (K2 @ t[..., None])[..., 0], x1, x2)  # (B, N) px
-    bound = threshold / math.sqrt(2) * math.sqrt(2) * torch.erfinv(torch.tensor(1 - significance, dtype=torch.float64)).item()
+    spread = math.sqrt(2) * threshold / 2  # √2 σ
+    bound = spread * math.sqrt(2) * torch.erfinv(torch.tensor(1 - significance, dtype=torch.float64)).item()  # × z(1 − α/2)
     ahead = (inliers & (parallax > bound)).sum(-1)  # (B,)
     beyond = ahead + (inliers & (parallax < -bound)).sum(-1)
     count = torch.arange(x1.shape[-2] + 1, device=x1.device)  # (N + 1,) the binomial's outcomes

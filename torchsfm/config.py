@@ -200,8 +200,9 @@ class RelativePoseConfig:
     A pose whose inliers show no parallax beyond noise has no determined translation: the
     camera turned in place or did not move. It is an error, not a pose (the sign test of
     :func:`~torchsfm.geometry.essential.parallax_is_noise` at ``parallax_significance``, with
-    the inlier threshold as 2σ of the Sampson distance: points in front of both cameras lie
-    beyond the noise on one side of infinity, mismatches along the epipolar lines on both).
+    the inlier threshold as 2σ of the Sampson distance: the median inlier within the noise, and
+    no excess beyond it on the front side of infinity, where points in front of both cameras
+    lie, over the other, where mismatches along the epipolar lines fall as often).
     """
 
     method: PoseMethod = "svd"

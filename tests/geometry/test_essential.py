@@ -9,6 +9,7 @@ from torchsfm.geometry.essential import (
     essential_from_fundamental,
     essential_from_pose,
     parallax_from_infinity,
+    parallax_is_noise,
     select_pose,
     two_view_depths,
 )
@@ -77,6 +78,32 @@ def test_parallax_from_infinity_is_positive_in_front_zero_at_infinity_and_negati
     assert bool((behind < 0).all())
     assert_close(parallax_from_infinity(scene.R, scene.t, n1, at_infinity), torch.zeros(30, **DOUBLE), rtol=0, atol=1e-12)
     assert_close(parallax_from_infinity(scene.R, torch.zeros(3, **DOUBLE), n1, n2), torch.zeros(30, **DOUBLE), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("case, undetermined", [
+    ("noise", True),  # every parallax within the bound (2.33 px for a 1 px threshold, α = 0.001)
+    ("noise and mismatches on both sides", True),  # 10 %, beyond the bound: 5 ahead, 5 behind
+    ("a near minority in front", False),  # 30 % beyond the bound, all ahead: the sign test finds them
+    ("large parallax on both sides", False),  # the median beyond the bound: not "no parallax" (a false pair)
+])
+def test_parallax_is_noise_tells_a_rotation_from_a_translation(case, undetermined):
+    """R = I, t along x, K = I: each point's parallax is its x displacement, set per case."""
+    g = torch.Generator().manual_seed(0)
+    n = 100
+    parallax = 0.3 * torch.randn(n, generator=g, dtype=torch.float64)
+    if case == "noise and mismatches on both sides":
+        parallax[:10] = torch.tensor([6.0, -7.0] * 5, dtype=torch.float64)
+    elif case == "a near minority in front":
+        parallax[:30] = 5 + 10 * torch.rand(30, generator=g, dtype=torch.float64)
+    elif case == "large parallax on both sides":
+        parallax = torch.where(torch.arange(n) % 2 == 0, -8.0, 8.0).double()
+    x1 = 100 * torch.rand(1, n, 2, generator=g, dtype=torch.float64)
+    x2 = x1 + torch.stack([parallax, torch.zeros(n, dtype=torch.float64)], -1)[None]
+    eye = torch.eye(3, dtype=torch.float64)[None]
+    result, median = parallax_is_noise(eye, torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64), x1, x2, eye, eye,
+                                       torch.ones(1, n, dtype=torch.bool), 1.0, 1e-3)
+    assert result.tolist() == [undetermined]
+    assert_close(median, parallax.abs().sort().values[(n - 1) // 2][None], rtol=0, atol=1e-12)  # the lower middle; x2 - x1 rounds
 
 
 def test_methods_agree_on_a_noisy_rank2_E():

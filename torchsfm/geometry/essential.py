@@ -201,9 +201,10 @@ def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, 
     carried over by the rotation), beyond c = √2 σ z(1 − α/2) (α = ``significance``) on either
     side as often. A point in front of both cameras lies beyond c on the positive side (the
     cheirality test chose t's sign so), a mismatch that F let through along its epipolar line on
-    either side. So the translation is determined only where more inliers lie beyond c on the
-    positive side than a fair coin would put there among all those beyond c: a one-sided sign
-    test at α (exact binomial tail).
+    either side. So the translation is undetermined where the median inlier lies within c and
+    no more inliers lie beyond c on the positive side than a fair coin would put there among all
+    those beyond c (a one-sided sign test at α, exact binomial tail). A pose with many inliers
+    beyond c on both sides (a false pair, or a wrong pose) is not this function's to judge.
 
     Args:
         R, t: (B, 3, 3), (B, 3) poses (``X2 = R X1 + t``); x1, x2: (B, N, 2) pixels; K1, K2:
@@ -224,4 +225,4 @@ def parallax_is_noise(R: Tensor, t: Tensor, x1: Tensor, x2: Tensor, K1: Tensor, 
     log_pmf = torch.lgamma(k + 1) - torch.lgamma(j + 1) - torch.lgamma((k - j).clamp_min(0) + 1) - k * math.log(2)
     tail = torch.where((count[None] >= ahead[:, None]) & (count[None] <= beyond[:, None]), log_pmf, -torch.inf).logsumexp(-1)
     median = torch.where(inliers, parallax.abs(), torch.nan).nanmedian(-1).values.nan_to_num(0.0)
-    return tail > math.log(significance), median
+    return (median <= bound) & (tail > math.log(significance)), median

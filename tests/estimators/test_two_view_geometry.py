@@ -179,7 +179,7 @@ class TestBadInput:
     def test_no_parallax_is_an_error_not_a_pose(self):
         """A camera that did not move (x2 = x1) or turned in place (noise 0.3 px, baseline 0):
         any unit t explains the epipolar residuals, so a pose would be an arbitrary translation
-        with points at infinity; the χ² test on the inliers' parallax refuses it instead."""
+        with points at infinity; the test of the inliers' parallax refuses it instead."""
         with pytest.raises(DegenerateConfigurationError, match=r"no parallax beyond noise \(median 0.00 px"):
             torchsfm.estimate_relative_pose(self.scene.x1, self.scene.x1.clone(), self.scene.K1, self.scene.K1)
         turned = synthetic_two_view(200, noise=0.3, baseline=0.0, seed=8)
@@ -245,9 +245,10 @@ def test_relative_pose_ragged_batch_is_exact_per_problem_and_survives_a_bad_one(
 
 
 def test_a_short_baseline_keeps_its_pose_and_a_batch_reports_the_turned_camera():
-    """Parallax of about 2 px (baseline 0.02 at 4-8 m, f = 600) under 0.3 px noise is far
-    beyond noise: the pose stands, its translation within 10°. In one batch with a camera that
-    turned in place (baseline 0), that problem alone reports failure (R = I, t = 0, no inliers)."""
+    """A short baseline (0.02 at 4-8 m, f = 600: median parallax 2.8 px) under 0.3 px noise: 167
+    of its 199 inliers lie beyond the 2.33 px noise bound, all in front, so the pose stands, its
+    translation within 10°. In one batch with a camera that turned in place (baseline 0), that
+    problem alone reports failure (R = I, t = 0, no inliers)."""
     short = synthetic_two_view(200, noise=0.3, baseline=0.02, seed=8)
     turned = synthetic_two_view(200, noise=0.3, baseline=0.0, seed=8)
     x1, x2 = torch.stack([short.x1, turned.x1]), torch.stack([short.x2, turned.x2])

@@ -224,6 +224,8 @@ def test_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():
     assert not estimate.inlier_mask[2].any() and torch.isfinite(estimate.F).all()
     with pytest.raises(ShapeError, match="valid"):
         torchsfm.estimate_fundamental(x1, x2, valid=valid[:, :10])
+    with pytest.raises(ShapeError, match=r"valid must be a bool tensor of shape \(3, 300\), got torch.float32 \(3, 300\)"):
+        torchsfm.estimate_fundamental(x1, x2, valid=valid.float())
 
 
 def test_relative_pose_ragged_batch_is_exact_per_problem_and_survives_a_bad_one():

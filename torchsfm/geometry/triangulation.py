@@ -230,8 +230,8 @@ def triangulate_points(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor, config: T
 def parallel_rays(x1: Tensor, x2: Tensor, P1: Tensor, P2: Tensor) -> Tensor:
     """(*, N) bool: the rays of pixels x1, x2 (*, N, 2) through finite cameras P1, P2 (*, 3, 4)
     are parallel to float64 rounding (the sine of their angle at most 1e-12)."""
-    d1 = torch.linalg.solve(P1[..., None, :, :3], to_homogeneous(x1)[..., None])[..., 0]  # (*, N, 3) directions
-    d2 = torch.linalg.solve(P2[..., None, :, :3], to_homogeneous(x2)[..., None])[..., 0]
+    d1 = torch.linalg.solve(P1[..., :3], to_homogeneous(x1).transpose(-1, -2)).transpose(-1, -2)  # (*, N, 3) directions
+    d2 = torch.linalg.solve(P2[..., :3], to_homogeneous(x2).transpose(-1, -2)).transpose(-1, -2)
     return torch.linalg.cross(d1, d2).norm(dim=-1) <= 1e-12 * d1.norm(dim=-1) * d2.norm(dim=-1)
 
 

@@ -103,10 +103,10 @@ class BundleProblem:
                 raise InputError(f"{name} must be an integer tensor, got {index.dtype}")
         C, P = self.rotations.shape[0], self.points.shape[0]
         gram = self.rotations.transpose(-1, -2) @ self.rotations - torch.eye(3, dtype=self.rotations.dtype, device=self.rotations.device)
-        proper = torch.linalg.det(self.rotations) > 0
-        if C and (float(gram.abs().amax()) > ROTATION_TOLERANCE or not bool(proper.all())):
-            bad = int(((gram.abs().amax((-2, -1)) > ROTATION_TOLERANCE) | ~proper).nonzero()[0, 0])
-            raise InputError(f"rotations[{bad}] is not a rotation matrix (RᵀR = I within {ROTATION_TOLERANCE:g}, det R = +1)")
+        improper = (gram.abs().amax((-2, -1)) > ROTATION_TOLERANCE) | (torch.linalg.det(self.rotations) <= 0)  # (C,)
+        if bool(improper.any()):
+            raise InputError(f"rotations[{int(improper.nonzero()[0, 0])}] is not a rotation matrix "
+                             f"(RᵀR = I within {ROTATION_TOLERANCE:g}, det R = +1)")
         if self.camera_index.numel() and (int(self.camera_index.min()) < 0 or int(self.camera_index.max()) >= C):
             raise InputError(f"camera_index must lie in [0, {C})")
         if self.point_index.numel() and (int(self.point_index.min()) < 0 or int(self.point_index.max()) >= P):

@@ -120,6 +120,22 @@ def test_bad_input():
         torchsfm.estimate_absolute_pose(X, x, torch.zeros(3, 3, **DOUBLE))
 
 
+def test_points_on_one_line_are_refused_by_name_not_answered_with_a_pose():
+    """30 points along one line, seen exactly: every pose turned about the line fits them. The
+    error says so (in float32 input too, where rounding takes them off the line and RANSAC would
+    return one of those poses); in a ragged batch (float32 again) that problem alone fails."""
+    along = torch.linspace(-1.0, 1.0, 30, **DOUBLE)[:, None]
+    X = torch.tensor([0.2, -0.1, 5.0], **DOUBLE) + along * torch.tensor([1.0, 0.5, 1.0], **DOUBLE)
+    x = (X @ K.T)[:, :2] / (X @ K.T)[:, 2:]
+    for dtype in (torch.float64, torch.float32):
+        with pytest.raises(DegenerateConfigurationError, match="30 3-D points lie on one line"):
+            torchsfm.estimate_absolute_pose(X.to(dtype), x.to(dtype), K.to(dtype), generator=torch.Generator().manual_seed(0))
+    good_X, good_x, _, _, _ = _scene(30)
+    poses = torchsfm.estimate_absolute_pose(torch.stack([good_X, X]).float(), torch.stack([good_x, x]).float(), K.float(),
+                                            valid=torch.ones(2, 30, dtype=torch.bool), generator=torch.Generator().manual_seed(0))
+    assert poses.success.tolist() == [True, False]
+
+
 def test_p3p_degenerate_samples_are_invalid_not_fatal():
     """Regression: coincident 3-D points once fed a non-finite companion matrix to LAPACK (a
     segmentation fault). They come back invalid, and so do collinear ones (a family of poses

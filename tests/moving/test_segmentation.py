@@ -148,8 +148,11 @@ def test_given_number_of_motions_is_used():
     data = scene(3, 2)
     result = segment_motions(data.tracks, num_motions=3, generator=torch.Generator().manual_seed(0))
     assert result.num_motions == 3
-    with pytest.raises(NotEnoughDataError, match="motions"):
-        segment_motions(data.tracks, num_motions=0)
+    for wrong in (0, -1, 2.5, True):  # refused before any work, by what is wrong with it
+        with pytest.raises(InputError, match="num_motions must be a positive int"):
+            segment_motions(data.tracks, num_motions=wrong)
+    with pytest.raises(NotEnoughDataError, match="motions"):  # more motions than tracks to cluster
+        segment_motions(data.tracks, num_motions=data.tracks.shape[1] + 1)
 
 
 def test_two_bodies_taken_for_one_are_cut_apart():

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from torchsfm.camera import intrinsics_per_view
 from torchsfm.config import Config
-from torchsfm.errors import NotEnoughDataError, ShapeError
+from torchsfm.errors import DegenerateConfigurationError, NotEnoughDataError, ShapeError
 from torchsfm.estimators.resection_refinement import refine_pose
 from torchsfm.geometry.resection import reprojection_errors
 from torchsfm.inference import without_autograd
@@ -53,7 +53,9 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
 
     Raises:
         ShapeError, InputError: malformed input. NotEnoughDataError: fewer than 6 pairs, or (without
-        ``valid``) no pose with 6 inliers.
+        ``valid``) no pose with 6 inliers. DegenerateConfigurationError: (without ``valid``) the
+        3-D points lie on one line (the rotation about it is undetermined; with ``valid``, such a
+        problem gets ``success`` False).
     """
     config = config or Config()
     settings = config.resection
@@ -73,6 +75,12 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
                              f"{f'{valid.dtype} {tuple(valid.shape)}' if isinstance(valid, Tensor) else type(valid).__name__}")
         check_finite(X=X64[valid], x=x64[valid])
         X64, x64 = fill_padding(X64, valid), fill_padding(x64, valid)
+    spread = torch.linalg.svdvals(X64 - X64.mean(-2, keepdim=True))  # (B, 3) the points' extent along their principal axes
+    collinear = spread[:, 1] <= 1e3 * torch.finfo(X.dtype).eps * spread[:, 0]  # across a line: within the input's rounding
+    if valid is None and bool(collinear.any()):
+        which = "" if unbatched else f" (problems {torch.nonzero(collinear).flatten().tolist()})"
+        raise DegenerateConfigurationError(f"the {X64.shape[1]} 3-D points lie on one line{which}: the camera's rotation "
+                                           "about it is undetermined")
     K64 = intrinsics_per_view(K, B)
     data = torch.cat([X64, x64], dim=-1)
     found = ransac(ResectionModel(K64, settings.solver), data, settings.ransac, valid=valid, generator=generator)
@@ -80,7 +88,7 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
     if valid is None and not bool(success.all()):
         raise NotEnoughDataError("RANSAC found no camera pose with at least 6 inliers")
     if valid is not None:
-        success = success & (valid.sum(-1) >= 6)  # as many pairs as an unbatched call needs
+        success = success & (valid.sum(-1) >= 6) & ~collinear  # as many pairs as an unbatched call needs
     mask = success[:, None] if valid is None else valid & success[:, None]
     identity = torch.eye(3, 4, dtype=torch.float64, device=X64.device)
     pose = torch.where(success[:, None, None], torch.linalg.solve(K64, found.model), identity)  # [R | t]

@@ -88,7 +88,7 @@ import torch
 from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
-from torchsfm.errors import NotEnoughDataError
+from torchsfm.errors import InputError, NotEnoughDataError
 from torchsfm.inference import without_autograd
 from torchsfm.moving.affinity import explained_tracks, preference_similarity, strongest_links
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
@@ -150,11 +150,14 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
         A :class:`MotionSegmentation`.
 
     Raises:
-        ShapeError, InputError: malformed tracks or visibility, non-finite visible positions.
+        ShapeError, InputError: malformed tracks or visibility, non-finite visible positions,
+            ``num_motions`` not a positive int.
         NotEnoughDataError: fewer than 2 frames, fewer than 12 tracks seen in ``min_frames``
-            frames (or fitting any motion), or ``num_motions`` outside 1..N.
+            frames (or fitting any motion), or ``num_motions`` above the tracks clustered.
     """
     config = config or SegmentationConfig()
+    if num_motions is not None and (isinstance(num_motions, bool) or not isinstance(num_motions, int) or num_motions < 1):
+        raise InputError(f"num_motions must be a positive int (the static scene counts as one) or None, got {num_motions!r}")
     tracks, visible = check_tracks(tracks, visible, min_frames=2)
     generator = resolve_generator(generator, tracks.device)
     if config.runs == 1:

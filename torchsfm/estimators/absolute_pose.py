@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as functional
 from torch import Tensor
 
 from torchsfm.camera import intrinsics_per_view
@@ -75,7 +76,8 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
                              f"{f'{valid.dtype} {tuple(valid.shape)}' if isinstance(valid, Tensor) else type(valid).__name__}")
         check_finite(X=X64[valid], x=x64[valid])
         X64, x64 = fill_padding(X64, valid), fill_padding(x64, valid)
-    spread = torch.linalg.svdvals(X64 - X64.mean(-2, keepdim=True))  # (B, 3) the points' extent along their principal axes
+    spread = torch.linalg.svdvals(X64 - X64.mean(-2, keepdim=True))  # (B, min(N, 3)) the points' extent along their principal axes
+    spread = functional.pad(spread, (0, 3 - spread.shape[-1]))  # fewer than 3 points: none across
     collinear = spread[:, 1] <= 1e3 * torch.finfo(X.dtype).eps * spread[:, 0]  # across a line: within the input's rounding
     if valid is None and bool(collinear.any()):
         which = "" if unbatched else f" (problems {torch.nonzero(collinear).flatten().tolist()})"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy
 import pytest
 import torch
 
@@ -148,7 +149,8 @@ def test_given_number_of_motions_is_used():
     data = scene(3, 2)
     result = segment_motions(data.tracks, num_motions=3, generator=torch.Generator().manual_seed(0))
     assert result.num_motions == 3
-    for wrong in (0, -1, 2.5, True):  # refused before any work, by what is wrong with it
+    assert segment_motions(data.tracks, num_motions=numpy.int64(3), generator=torch.Generator().manual_seed(0)).num_motions == 3
+    for wrong in (0, -1, 2.5, True, "3"):  # refused before any work, by what is wrong with it
         with pytest.raises(InputError, match="num_motions must be a positive int"):
             segment_motions(data.tracks, num_motions=wrong)
     with pytest.raises(NotEnoughDataError, match="motions"):  # more motions than tracks to cluster

@@ -82,6 +82,7 @@ step 7.
 
 from __future__ import annotations
 
+import operator
 from dataclasses import dataclass
 
 import torch
@@ -156,8 +157,8 @@ def segment_motions(tracks: Tensor, visible: Tensor | None = None, *, config: Se
             frames (or fitting any motion), or ``num_motions`` above the tracks clustered.
     """
     config = config or SegmentationConfig()
-    if num_motions is not None and (isinstance(num_motions, bool) or not isinstance(num_motions, int) or num_motions < 1):
-        raise InputError(f"num_motions must be a positive int (the static scene counts as one) or None, got {num_motions!r}")
+    if num_motions is not None:
+        num_motions = positive_count(num_motions)
     tracks, visible = check_tracks(tracks, visible, min_frames=2)
     generator = resolve_generator(generator, tracks.device)
     if config.runs == 1:
@@ -191,6 +192,18 @@ def adjusted_rand_index(first: Tensor, second: Tensor) -> float:
     expected = rows * columns / max(n * (n - 1) / 2, 1)
     largest = (rows + columns) / 2
     return 1.0 if float(largest - expected) == 0 else float((together - expected) / (largest - expected))
+
+
+def positive_count(num_motions: object) -> int:
+    """``num_motions`` as an int (a Python, NumPy or 0-d tensor integer), or an :class:`InputError`
+    naming it where it is not a positive integer."""
+    try:
+        count = operator.index(num_motions)
+    except TypeError:
+        count = None
+    if isinstance(num_motions, bool) or count is None or count < 1:
+        raise InputError(f"num_motions must be a positive int (the static scene counts as one) or None, got {num_motions!r}")
+    return count
 
 
 def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, num_motions: int | None,

@@ -96,3 +96,12 @@ def count_distinct_rows(x: Tensor) -> Tensor:
         order = order.gather(1, torch.argsort(flat[..., column].gather(1, order), dim=1, stable=True))
     ordered = flat.gather(1, order[..., None].expand(B, N, D))
     return (1 + (ordered[:, 1:] != ordered[:, :-1]).any(-1).sum(1)).reshape(x.shape[:-2])
+
+
+def lie_on_one_line(points: Tensor, tolerance: float) -> Tensor:
+    """Whether each set of points (*, N, D) lies on one line: its extent across its principal
+    axis (second singular value of the centred points) at most ``tolerance`` times its extent
+    along it -> (*,) bool (fewer than 3 points: True)."""
+    spread = torch.linalg.svdvals(points - points.mean(-2, keepdim=True))  # (*, min(N, D))
+    spread = torch.nn.functional.pad(spread, (0, max(0, 2 - spread.shape[-1])))  # nothing across a line of < 3 points
+    return spread[..., 1] <= tolerance * spread[..., 0]

@@ -24,7 +24,7 @@ from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.geometry.rotation import axis_angle_to_rotation, nearest_rotation, skew
 from torchsfm.inference import without_autograd
 from torchsfm.optim.lm import levenberg_marquardt
-from torchsfm.validation import check_finite, check_floating, check_shapes
+from torchsfm.validation import check_finite, check_floating, check_shapes, lie_on_one_line
 
 
 @dataclass
@@ -229,8 +229,7 @@ def calibrate_camera(board: Tensor, image_points: Tensor, config: CalibrationCon
     if sizes["N"] < 4:
         raise NotEnoughDataError(f"a view needs at least 4 board points, got {sizes['N']}")
     board, image_points = board.double(), image_points.double()
-    spread = torch.linalg.svdvals(board - board.mean(0))  # (2,): the board's extent along its two axes
-    if float(spread[1]) <= 1e-9 * float(spread[0]):
+    if bool(lie_on_one_line(board, 1e-9)):
         raise DegenerateConfigurationError("the board points are collinear (one row or column): a plane's homography needs a 2-D target")
     V = sizes["V"]
     H = view_homographies(board, image_points, config.lm)

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as functional
 from torch import Tensor
 
 from torchsfm.camera import intrinsics_per_view
@@ -17,7 +16,7 @@ from torchsfm.inference import without_autograd
 from torchsfm.robust.models import ResectionModel
 from torchsfm.robust.ragged import fill_padding
 from torchsfm.robust.ransac import ransac
-from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes
+from torchsfm.validation import check_finite, check_floating, check_min_count, check_shapes, lie_on_one_line
 
 
 @dataclass
@@ -76,9 +75,7 @@ def estimate_absolute_pose(X: Tensor, x: Tensor, K: Tensor, *, valid: Tensor | N
                              f"{f'{valid.dtype} {tuple(valid.shape)}' if isinstance(valid, Tensor) else type(valid).__name__}")
         check_finite(X=X64[valid], x=x64[valid])
         X64, x64 = fill_padding(X64, valid), fill_padding(x64, valid)
-    spread = torch.linalg.svdvals(X64 - X64.mean(-2, keepdim=True))  # (B, min(N, 3)) the points' extent along their principal axes
-    spread = functional.pad(spread, (0, 3 - spread.shape[-1]))  # fewer than 3 points: none across
-    collinear = spread[:, 1] <= 1e3 * torch.finfo(X.dtype).eps * spread[:, 0]  # across a line: within the input's rounding
+    collinear = lie_on_one_line(X64, 1e3 * torch.finfo(X.dtype).eps)  # (B,) across a line: within the input's rounding
     if valid is None and bool(collinear.any()):
         which = "" if unbatched else f" (problems {torch.nonzero(collinear).flatten().tolist()})"
         raise DegenerateConfigurationError(f"the {X64.shape[1]} 3-D points lie on one line{which}: the camera's rotation "

@@ -227,7 +227,7 @@ def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, n
     index, similarity = index[explained], similarity[explained][:, explained]
     affinity = strongest_links(similarity, config.links)
     eigenvalues, vectors = leading_eigenvectors(affinity, max(config.pieces, num_motions or 0))
-    if num_motions is not None and not 1 <= num_motions <= index.numel():
+    if num_motions is not None and num_motions > index.numel():  # a positive int (checked by segment_motions)
         raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
     pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
     cut = spectral_partition(vectors, pieces, config, generator)

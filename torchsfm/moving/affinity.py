@@ -32,12 +32,11 @@ def ordered_preferences(residuals: Tensor, defined: Tensor, config: Segmentation
     """(H, N) residuals -> (N, H) bool preferences, each track preferring the ``preference_share``
     of its defined hypotheses with the smallest residuals (ordered-residual kernel), and the
     (N, H) bool mask of defined entries."""
-    masked = residuals.T.contiguous().masked_fill_(~defined.T, torch.inf)  # (N, H)
+    masked = residuals.masked_fill(~defined, torch.inf)  # (H, N)
     keep = (defined.sum(0) * config.preference_share).ceil().long().clamp_min(1)  # (N,)
-    defined = defined.T
-    smallest = masked.topk(int(keep.max()), dim=1, largest=False).values  # (N, k) ascending
-    largest_kept = smallest.gather(1, keep[:, None] - 1)  # the keep-th smallest of each track
-    return (masked <= largest_kept) & defined, defined
+    smallest = masked.topk(int(keep.max()), dim=0, largest=False).values  # (k, N) ascending
+    largest_kept = smallest.gather(0, keep[None] - 1)  # the keep-th smallest of each track
+    return ((masked <= largest_kept) & defined).T, defined.T  # transposed as bools: an eighth of the doubles' bytes
 
 
 def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:

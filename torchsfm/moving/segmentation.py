@@ -83,7 +83,9 @@ step 7.
 from __future__ import annotations
 
 import operator
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cached_property, partial
 
 import torch
 from torch import Tensor
@@ -97,7 +99,7 @@ from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.pair_fits import frame_pairs, motion_residuals, track_residuals
 from torchsfm.moving.scene import grid_coverage, partition_residual, rechosen_scene, scene_first, settle_scene, split_least_rigid
 from torchsfm.moving.track_input import check_tracks
-from torchsfm.robust.samplers import resolve_generator
+from torchsfm.robust.samplers import resolve_generator, side_generator
 
 
 @dataclass
@@ -110,27 +112,35 @@ class MotionSegmentation:
         num_motions: rigid motions found, the static scene included (k + 1).
         sizes: (num_motions,) tracks per label 0..k.
         coverage: (num_motions,) grid cells (of 64) each label's tracks cover over all frames.
-        residuals: (num_motions,) how rigid each label's tracks are: the median over its tracks
-            of their RMS Sampson distance (pixels) to one F per frame pair fitted from RANSAC's
-            inliers (:func:`motion_residuals`: tracks the clustering let in by mistake neither
-            pull the fit nor set the median); NaN for a label too small to fit.
         eigenvalues: (pieces,) leading eigenvalues of the normalized affinity.
         affinity: (n, n) the sparsified symmetric affinity the clustering used, over the
             ``clustered`` (n,) tracks (input indices).
         pieces: (N,) int64 the piece of the over-segmentation (spectral k-means, before the
             merges) each clustered track fell in, -1 for the others; every motion is a union of
             pieces.
+
+    And :attr:`residuals`, each motion's rigidity, computed when first read.
     """
 
     labels: Tensor
     num_motions: int
     sizes: Tensor
     coverage: Tensor
-    residuals: Tensor
     eigenvalues: Tensor
     affinity: Tensor
     clustered: Tensor
     pieces: Tensor
+    rigidity: Callable[[], Tensor] = field(repr=False, compare=False)
+
+    @cached_property
+    def residuals(self) -> Tensor:
+        """(num_motions,) how rigid each label's tracks are: the median over its tracks of their
+        RMS Sampson distance (pixels) to one F per frame pair fitted from RANSAC's inliers
+        (:func:`motion_residuals`: tracks the clustering let in by mistake neither pull the fit
+        nor set the median); NaN for a label too small to fit. A RANSAC per motion and frame
+        pair that no decision needs (a tenth of a 1000-track segmentation's time): made when
+        first read, with draws of its own (the caller's stream goes on as without it)."""
+        return self.rigidity()
 
 
 @without_autograd
@@ -273,10 +283,10 @@ def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, n
     assigned = labels[index]
     sizes = torch.bincount(assigned[assigned >= 0], minlength=num_motions)
     members = labels[None] == torch.arange(num_motions, device=tracks.device)[:, None]
-    residuals = motion_residuals(tracks, visible, members, frame_pairs(visible), generator)
+    rigidity = partial(motion_residuals, tracks, visible, members, frame_pairs(visible), side_generator(generator))
     return MotionSegmentation(labels=labels, num_motions=num_motions, sizes=sizes,
-                              coverage=grid_coverage(tracks, visible, labels, num_motions), residuals=residuals,
-                              eigenvalues=eigenvalues, affinity=affinity, clustered=index, pieces=piece_of)
+                              coverage=grid_coverage(tracks, visible, labels, num_motions), eigenvalues=eigenvalues,
+                              affinity=affinity, clustered=index, pieces=piece_of, rigidity=rigidity)
 
 
 def label_by_residual(tracks: Tensor, visible: Tensor, labels: Tensor, queries: Tensor, num_motions: int) -> Tensor:

@@ -118,8 +118,7 @@ class MotionSegmentation:
         pieces: (N,) int64 the piece of the over-segmentation (spectral k-means, before the
             merges) each clustered track fell in, -1 for the others; every motion is a union of
             pieces.
-
-    And :attr:`residuals`, each motion's rigidity, computed when first read.
+        rigidity: what computes :attr:`residuals`, each motion's rigidity, when it is first read.
     """
 
     labels: Tensor
@@ -140,7 +139,7 @@ class MotionSegmentation:
         nor set the median); NaN for a label too small to fit. A RANSAC per motion and frame
         pair that no decision needs (a tenth of a 1000-track segmentation's time): made when
         first read, with draws of its own (the caller's stream goes on as without it)."""
-        return self.rigidity()
+        return without_autograd(self.rigidity)()
 
 
 @without_autograd

@@ -137,7 +137,7 @@ class MotionSegmentation:
         RMS Sampson distance (pixels) to one F per frame pair fitted from RANSAC's inliers
         (:func:`motion_residuals`: tracks the clustering let in by mistake neither pull the fit
         nor set the median); NaN for a label too small to fit. A RANSAC per motion and frame
-        pair that no decision needs (a tenth of a 1000-track segmentation's time): made when
+        pair that no decision needs (about a twentieth of a 1000-track segmentation's time): made when
         first read, with draws of its own (the caller's stream goes on as without it)."""
         return without_autograd(self.rigidity)()
 

@@ -45,6 +45,8 @@ def test_out_of_range_value_is_named():
         config_from_dict({"triangulation": {"method": "magic"}})
     with pytest.raises(ConfigError, match=r"reconstruction.refined_intrinsics='f,cx\|f,k2' is invalid: .*alternatives separated by \|"):
         config_from_dict({"reconstruction": {"refined_intrinsics": "f,cx|f,k2"}})
+    with pytest.raises(ConfigError, match=r"matching.relative_distance_threshold=2.5 .*never exceeds 2"):
+        config_from_dict({"matching": {"relative_distance_threshold": 2.5}})
 
 
 def test_yaml_floats_without_a_dot_are_accepted(tmp_path):

@@ -293,7 +293,8 @@ class MatchingConfig:
         _require(self.search_radius > 0, "search_radius", self.search_radius, "must be > 0")
         _require(-1 <= self.ncc_threshold < 1, "ncc_threshold", self.ncc_threshold, "must lie in [-1, 1)")
         _require(self.neighbourhood_radius > 0, "neighbourhood_radius", self.neighbourhood_radius, "must be > 0")
-        _require(self.relative_distance_threshold > 0, "relative_distance_threshold", self.relative_distance_threshold, "must be > 0")
+        _require(0 < self.relative_distance_threshold <= 2, "relative_distance_threshold", self.relative_distance_threshold,
+                 "must lie in (0, 2] (the relative difference of two distances never exceeds 2)")
         _require(0 < self.alpha <= 1, "alpha", self.alpha, "must lie in (0, 1]")
         _require(self.max_relaxation_iterations >= 1, "max_relaxation_iterations", self.max_relaxation_iterations, "must be >= 1")
 

@@ -79,9 +79,10 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         d1 = _distances(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
         d2 = _distances(points2[j[rows]], points2[cj])  # and d(m2j, n2l)
         dist = 0.5 * (d1 + d2)
-        r = (d1 - d2).abs_().div_(dist.clamp_min(1e-12))
-        alike = ((d1 < config.neighbourhood_radius) & (d2 < config.neighbourhood_radius) & (r < config.relative_distance_threshold)
-                 & (i[rows, None] != ci[None]) & (j[rows, None] != cj[None]))  # neighbours with δ > 0: the E that count
+        # r is 2 where the neighbour shares one corner with the row (one distance 0: ε_r <= 2 drops it)
+        # and NaN where it shares both (the row itself: 0 / 0, never below ε_r)
+        r = (d1 - d2).abs_().div_(dist)
+        alike = (torch.maximum(d1, d2) < config.neighbourhood_radius) & (r < config.relative_distance_threshold)  # δ > 0: the E that count
         r_index, c_index = torch.nonzero(alike, as_tuple=True)
         r, dist = r[r_index, c_index], dist[r_index, c_index]
         value = c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist)  # (E,)
@@ -101,9 +102,11 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
 def _distances(a: Tensor, b: Tensor) -> Tensor:
     """(R, C) Euclidean distances between the points a (R, 2) and b (C, 2), from the coordinates'
     differences: through |a|² + |b|² - 2a·b (``cdist``'s default) float32 loses the digits of near
-    neighbours, and ``cdist`` from the differences takes 3x as long."""
-    dx = a[:, 0, None] - b[:, 0]
-    dy = a[:, 1, None] - b[:, 1]
+    neighbours, and ``cdist`` from the differences takes 3x as long. (The coordinates are made
+    contiguous first: a broadcast difference of strided columns takes 3x as long.)"""
+    (ax, ay), (bx, by) = a.T.contiguous(), b.T.contiguous()
+    dx = ax[:, None] - bx
+    dy = ay[:, None] - by
     return dx.mul_(dx).addcmul_(dy, dy).sqrt_()
 
 

@@ -107,10 +107,13 @@ def _strength_by_definition(points1, points2, candidates, config):
     return c * torch.where(mutual, value, 0.0).sum(1)
 
 
-def test_strength_measure_is_that_of_its_definition():
+@pytest.mark.parametrize("epsilon", [0.3, 2.0])
+def test_strength_measure_is_that_of_its_definition(epsilon):
     """Over a 600 × 400 px field with 1200 candidates (several row blocks, neighbours across
     their boundaries, corners with several candidates each), SM as computed equals SM taken
-    from its definition candidate against candidate."""
+    from its definition candidate against candidate — at the default ε_r and at its largest,
+    2, where a neighbour sharing a corner with the row (r = 2 exactly) is left out only by the
+    strict test r < ε_r."""
     generator = torch.Generator().manual_seed(5)
     n = 400
     points1 = torch.rand(n, 2, generator=generator, dtype=torch.float64) * torch.tensor([600.0, 400.0], dtype=torch.float64)
@@ -120,7 +123,7 @@ def test_strength_measure_is_that_of_its_definition():
     pairs = torch.unique(index1 * n + index2)
     candidates = CandidateMatches(index1=pairs // n, index2=pairs % n,
                                   score=0.8 + 0.2 * torch.rand(pairs.numel(), generator=generator, dtype=torch.float64))
-    config = MatchingConfig(neighbourhood_radius=80)
+    config = MatchingConfig(neighbourhood_radius=80, relative_distance_threshold=epsilon)
     strength = strength_measure(points1, points2, candidates, config)
     assert (strength > 0).float().mean() > 0.5
     assert_close(strength, _strength_by_definition(points1, points2, candidates, config), rtol=1e-12, atol=1e-12)

@@ -157,6 +157,7 @@ def reconstruction_summary(model: Reconstruction, seconds: float, config: Config
         "registered": [{"index": index, "image": name} for index, name in zip(model.view_indices, model.image_names)],
         "unregistered": [{"index": index, "reason": reason} for index, reason in sorted(model.unregistered.items())],
         "loose_resections": [{"index": index, "threshold_px": threshold} for index, threshold in sorted(model.loose_resections.items())],
+        "tracked_resections": [{"index": index, "inliers": kept} for index, kept in sorted(model.tracked_resections.items())],
         "still_frames": [{"index": index, "keyframe": key} for index, key in model.still_frames.items()],
         "points": model.num_points,
         "observations": int(model.observation_points.numel()),

@@ -452,7 +452,10 @@ class ReconstructionConfig:
     least ``min_initial_angle`` degrees (where no pair, matched or linked through tracks, reaches
     it: half of it, as COLMAP relaxes its initial angle). Each next view is resected from its tracks' 3-D points
     and needs ``min_resection_inliers`` (the resection threshold doubles, up to
-    ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`). New points need a triangulation angle of
+    ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`); with
+    ``track_against_map``, a view that keeps too few even there is tracked against the map: the
+    model's points searched (NCC) within that threshold of where its widest resection puts them,
+    and the view resected again from what is found (:func:`torchsfm.sfm.mapping.pose_by_tracking`). New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
     Images whose larger side exceeds ``max_image_size`` px (0: never) are reduced by the smallest
@@ -495,6 +498,7 @@ class ReconstructionConfig:
     min_initial_angle: float = 2.0
     min_resection_inliers: int = 20
     max_resection_threshold: float = 8.0
+    track_against_map: bool = True
     max_image_size: int = 1600
     min_point_angle: float = 1.0
     max_reprojection_error: float = 2.0

@@ -32,6 +32,10 @@ class Reconstruction:
         loose_resections: multi-view models only: input views whose resection kept too few
             inliers at ``resection.ransac.inlier_threshold`` and registered at a wider threshold
             (px; see :func:`torchsfm.sfm.mapping.resect`): less certain than the others.
+        tracked_resections: multi-view models only: input views whose resection kept too few
+            inliers even at the widest threshold and that were registered by tracking against
+            the map (:func:`torchsfm.sfm.mapping.pose_by_tracking`: the model's points searched
+            where that resection puts them), with the inliers of the resection from what was found.
         still_frames: multi-view models only: input views whose camera did not move from an
             earlier keyframe (``{view: keyframe}``, :func:`torchsfm.sfm.mapping.still_frames`):
             resected from the final model, not bundle-adjusted.
@@ -67,6 +71,7 @@ class Reconstruction:
     view_indices: list[int] = field(default_factory=list)
     unregistered: dict[int, str] = field(default_factory=dict)
     loose_resections: dict[int, float] = field(default_factory=dict)
+    tracked_resections: dict[int, int] = field(default_factory=dict)
     still_frames: dict[int, int] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     moving_objects: dict[tuple[int, int, int], MovingObjectRejection] = field(default_factory=dict)

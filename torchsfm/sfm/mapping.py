@@ -20,10 +20,11 @@ from torchsfm.geometry.triangulation import triangulate_points
 from torchsfm.optim.bundle import BundleProblem, bundle_adjust, intrinsics_covariance
 from torchsfm.reconstruction import Reconstruction
 from torchsfm.robust.ragged import pad_rows
+from torchsfm.robust.samplers import side_generator
 from torchsfm.estimators.two_view_geometry import estimate_relative_pose
 from torchsfm.estimators.absolute_pose import AbsolutePose, estimate_absolute_pose
 from torchsfm.estimators.planar_pose import PlanarPose, choose_by_normal, planar_poses
-from torchsfm.sfm.projection_search import observations_by_projection
+from torchsfm.sfm.projection_search import join_observations, model_pixels, observations_by_projection, points_seen_by_projection
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.sfm.view_pairs import PairMatches, verify_pairs
 from torchsfm.numerics import floor_tiny
@@ -58,6 +59,7 @@ class MapperState:
         self.t = torch.zeros(V, 3, dtype=torch.float64)
         self.registered = torch.zeros(V, dtype=torch.bool)
         self.loose_resections: dict[int, float] = {}  # view -> the widened threshold its resection needed (px)
+        self.tracked_resections: dict[int, int] = {}  # view -> inliers of its resection from points found by tracking against the map
         self.still_frames: dict[int, int] = {}  # view -> the keyframe it did not move from (posed, not adjusted)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
@@ -393,6 +395,51 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
                    first=AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : mine.numel()],
                                       num_trials=poses.num_trials[b], success=poses.success[b]))
             for b, (view, mine) in enumerate(zip(views, rows))]
+
+
+def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config,
+                     generator: torch.Generator | None, mask: Tensor | None = None) -> AbsolutePose | str:
+    """The pose of ``view`` — whose resection kept too few inliers even at the widest threshold —
+    tracked against the map, or why not. Its matches may tie many of its corners to the wrong
+    points (a repeated texture: a scaffolded façade seen 12 m further on), so few agree on a pose,
+    but the pose those few fix within ``max_resection_threshold`` predicts where the model's
+    points lie in its image: each point is searched there, within that threshold, by the patch of
+    its nearest observation (:func:`~torchsfm.sfm.projection_search.points_seen_by_projection`),
+    and the view is resected again, at the RANSAC threshold, from what is found. The pose stands
+    with ``min_resection_inliers`` inliers, whose observations then join the model (each
+    replacing the view's own tie to that point); otherwise the view's pose is left as it was.
+    ``greys``, ``distortion``, ``linked`` and the view's ``mask`` as for
+    :func:`~torchsfm.sfm.projection_search.observations_by_projection`; the draws come from a
+    generator seeded as ``generator`` (a search that fails leaves the caller's stream as it was)."""
+    settings, needed = config.resection, config.reconstruction.min_resection_inliers
+    widest = config.reconstruction.max_resection_threshold
+    generator = side_generator(generator)
+    rows = model.observing(view)
+    wide = dataclasses.replace(config, resection=dataclasses.replace(
+        settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=widest)))
+    try:
+        predicted = estimate_absolute_pose(model.points[model.tracks.track[rows]], model.pixels[rows], model.K[view], config=wide,
+                                           generator=generator)
+    except TorchSfmError as error:
+        return f"no pose to track it from: {error}"
+    before = model.R[view].clone(), model.t[view].clone()
+    model.R[view], model.t[view] = predicted.R, predicted.t
+    tracks, raw = points_seen_by_projection(model, greys, distortion, linked, config, view, math.ceil(widest), mask)
+    views = torch.full_like(tracks, view)
+    pose, kept = None, 0
+    if tracks.numel() >= needed:  # enough to be worth a resection (its errors, e.g. collinear points, leave kept at 0)
+        try:
+            pose = estimate_absolute_pose(model.points[tracks], model_pixels(model, distortion, views, raw)[1], model.K[view],
+                                          config=config, generator=generator)
+            kept = int(pose.inlier_mask.sum())
+        except TorchSfmError:
+            pass
+    if pose is None or kept < needed:
+        model.R[view], model.t[view] = before
+        return (f"tracked against the map from the pose its {int(predicted.inlier_mask.sum())} inliers within {widest:g} px fix, "
+                f"{tracks.numel()} of the model's points found, {kept} within {settings.ransac.inlier_threshold:g} px of one pose (needs {needed})")
+    join_observations(model, distortion, views[pose.inlier_mask], tracks[pose.inlier_mask], raw[pose.inlier_mask])
+    return pose
 
 
 def strongest_registered_pair(model: MapperState, pairs: dict[tuple[int, int], PairMatches], view: int
@@ -765,6 +812,9 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         return value
 
     pairs = {(i, j): match for (i, j), match in state.pairs.items() if allowed[i] and allowed[j]}
+    linked = torch.zeros(V, V, dtype=torch.bool)  # the verified pairs: a view is searched for its partners' points
+    ends = torch.tensor(list(pairs), dtype=torch.long).reshape(-1, 2).T
+    linked[ends[0], ends[1]] = linked[ends[1], ends[0]] = True
     (first, second), R, t = starting_pair(state, pairs, config, allowed, timed)
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
@@ -778,7 +828,7 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         waiting[list(unregistered)] = False
         if not bool(waiting.any()):
             break
-        seen = torch.zeros(V, dtype=torch.long).index_add_(0, tracks.view, model.has_point[tracks.track].long())
+        seen = torch.zeros(V, dtype=torch.long).index_add_(0, model.tracks.view, model.has_point[model.tracks.track].long())
         most = int(torch.where(waiting, seen, -1).max())
         if most < config.reconstruction.min_resection_inliers:  # too few points to resect: a verified pair may pose one
             stuck = torch.nonzero(waiting).flatten()
@@ -808,6 +858,16 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         found = timed("resection", lambda: resect_views(model, candidates, config, state.generator))
         registered = 0
         for view, outcome in zip(candidates, found):
+            if isinstance(outcome, str) and config.reconstruction.track_against_map and state.greys:  # too few inliers at any threshold
+                tracked = timed("tracking against the map", lambda: pose_by_tracking(
+                    model, view, state.greys, state.distortion, linked, config, state.generator,
+                    state.masks[view] if state.masks is not None else None))
+                if isinstance(tracked, str):
+                    outcome = f"{outcome}; {tracked}"
+                else:
+                    model.tracked_resections[view] = int(tracked.inlier_mask.sum())
+                    state.report(f"view {view} tracked against the map: {model.tracked_resections[view]} inliers among the points found")
+                    outcome = tracked, config.resection.ransac.inlier_threshold
             if isinstance(outcome, str):
                 unregistered[view] = outcome
                 continue
@@ -847,15 +907,12 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     timed("bundle adjustment", lambda: bundle(model, config, first, usable=readmitted))
     # drop outlier observations and weak points, then adjust once more
     errors = model.observation_errors()
-    inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
+    inlier_count = torch.zeros(tracks.num_tracks, dtype=torch.long).index_add_(0, model.tracks.track, (errors < config.reconstruction.max_reprojection_error).long())
     model.has_point &= inlier_count >= config.reconstruction.min_track_views
     timed("bundle adjustment", lambda: bundle(model, config, first))
     if state.estimate_focal:
         state.report(timed("intrinsics refinement", lambda: refine_intrinsics(model, config, first)))
     if config.reconstruction.observations_by_projection and state.greys:  # with the final cameras and intrinsics
-        linked = torch.zeros(V, V, dtype=torch.bool)
-        ends = torch.tensor(list(pairs), dtype=torch.long).reshape(-1, 2).T
-        linked[ends[0], ends[1]] = linked[ends[1], ends[0]] = True
         added = timed("observations by projection",
                       lambda: observations_by_projection(model, state.greys, state.distortion, linked, config, state.masks))
         state.report(f"{added} observations of the model's points found by projection")
@@ -907,6 +964,7 @@ def build_reconstruction(model: MapperState, colours: list[Tensor] | None, sizes
         point_tracks=point_tracks,
         unregistered=unregistered,
         loose_resections={view: threshold for view, threshold in sorted(model.loose_resections.items()) if model.registered[view]},
+        tracked_resections={view: kept for view, kept in sorted(model.tracked_resections.items()) if model.registered[view]},
         still_frames=dict(sorted(model.still_frames.items())),
         timings=timings,
     )

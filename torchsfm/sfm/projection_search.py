@@ -1,5 +1,6 @@
 """Observations found by projection: every registered view searched for the model's points it
-does not observe yet.
+does not observe yet, and a view the mapper could not resect searched for all of them where a
+predicted pose puts them (:func:`points_seen_by_projection`: tracking against the map).
 
 The matcher pairs Harris corners, each found at one scale in its own image; a view that sees
 the scene at another scale (a smaller image, a zoom) or blurred shares few corners with its
@@ -53,30 +54,61 @@ def observations_by_projection(model: MapperState, greys: list[Tensor], distorti
 
     Where the model has estimated a radial distortion (``model.radial``), the search looks
     through it too."""
-    errors = model.observation_errors()
-    inlier = errors < config.reconstruction.max_reprojection_error
+    inlier = model.observation_errors() < config.reconstruction.max_reprojection_error
     sources = LowPassedImages(greys)
     lenses = _lenses(model, distortion)
+    radius = math.ceil(config.reconstruction.max_reprojection_error)
     found_views, found_tracks, found_raw = [], [], []
     for view in torch.nonzero(model.registered).flatten().tolist():
         mask = masks[view] if masks is not None else None
-        tracks, raw = _search_view(model, sources, lenses, mask, config, view, inlier & linked[view][model.tracks.view])
+        tracks, raw = _search_view(model, sources, lenses, mask, config, view, inlier & linked[view][model.tracks.view], radius)
         found_views.append(torch.full_like(tracks, view))
         found_tracks.append(tracks)
         found_raw.append(raw)
-    view, track, raw = torch.cat(found_views), torch.cat(found_tracks), torch.cat(found_raw)
-    if not track.numel():
-        return 0
-    observed = _through(lenses[0], raw, model.K[view], view, undistort_points)
-    pixels = _through(lenses[1], observed, model.K[view], view, undistort_points)
-    order = torch.argsort(torch.cat([model.tracks.track, track]), stable=True)  # Tracks are sorted by track
-    corner = torch.full_like(track, -1)  # no detected corner
-    model.tracks = Tracks(view=torch.cat([model.tracks.view, view])[order], corner=torch.cat([model.tracks.corner, corner])[order],
-                          track=torch.cat([model.tracks.track, track])[order], num_tracks=model.tracks.num_tracks)
-    model.raw_pixels = torch.cat([model.raw_pixels.to(raw.dtype), raw])[order]
-    model.observed = torch.cat([model.observed, observed])[order]
-    model.pixels = torch.cat([model.pixels, pixels])[order]
+    track = torch.cat(found_tracks)
+    join_observations(model, distortion, torch.cat(found_views), track, torch.cat(found_raw))
     return int(track.numel())
+
+
+def points_seen_by_projection(model: MapperState, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config,
+                              view: int, radius: int, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Where ``view``, at the pose the model holds for it (a prediction: the view need not be
+    registered), is found to see the model's points: each point searched within ``radius`` px of
+    its projection as :func:`observations_by_projection` searches, also the points the view's own
+    matches already tie to a corner of it (in a repeated texture those ties may be wrong).
+    Returns the tracks (M,) and where the view sees them (M, 2), as detected; arguments as for
+    :func:`observations_by_projection`, ``mask`` the view's."""
+    inlier = model.observation_errors() < config.reconstruction.max_reprojection_error
+    return _search_view(model, LowPassedImages(greys), _lenses(model, distortion), mask, config, view,
+                        inlier & linked[view][model.tracks.view], radius, observed_too=True)
+
+
+def model_pixels(model: MapperState, distortion: Tensor, views: Tensor, raw: Tensor) -> tuple[Tensor, Tensor]:
+    """The (M, 2) pixels ``raw`` of the (M,) ``views`` as detected, as the model holds its
+    observations: with the known distortion undone (``observed``) and then the model's estimated
+    k1 too (``pixels``)."""
+    lenses = _lenses(model, distortion)
+    observed = _through(lenses[0], raw, model.K[views], views, undistort_points)
+    return observed, _through(lenses[1], observed, model.K[views], views, undistort_points)
+
+
+def join_observations(model: MapperState, distortion: Tensor, views: Tensor, tracks: Tensor, raw: Tensor) -> None:
+    """Add to the ``model`` the observations of the (M,) ``tracks`` in the (M,) ``views`` at the
+    (M, 2) pixels ``raw`` as detected, each replacing the view's observation of its track where
+    it has one."""
+    if not tracks.numel():
+        return
+    observed, pixels = model_pixels(model, distortion, views, raw)
+    old = model.tracks
+    key = old.view * old.num_tracks + old.track
+    kept = ~torch.isin(key, views * old.num_tracks + tracks)
+    order = torch.argsort(torch.cat([old.track[kept], tracks]), stable=True)  # Tracks are sorted by track
+    corner = torch.full_like(tracks, -1)  # no detected corner
+    model.tracks = Tracks(view=torch.cat([old.view[kept], views])[order], corner=torch.cat([old.corner[kept], corner])[order],
+                          track=torch.cat([old.track[kept], tracks])[order], num_tracks=old.num_tracks)
+    model.raw_pixels = torch.cat([model.raw_pixels[kept].to(raw.dtype), raw])[order]
+    model.observed = torch.cat([model.observed[kept], observed])[order]
+    model.pixels = torch.cat([model.pixels[kept], pixels])[order]
 
 
 def _lenses(model: MapperState, distortion: Tensor) -> tuple[Tensor | None, Tensor | None]:
@@ -100,16 +132,18 @@ def _through(lens: Tensor | None, points: Tensor, K: Tensor, view: Tensor | int,
 
 
 def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Tensor | None, Tensor | None], mask: Tensor | None,
-                 config: Config, view: int, usable: Tensor) -> tuple[Tensor, Tensor]:
+                 config: Config, view: int, usable: Tensor, radius: int, observed_too: bool = False) -> tuple[Tensor, Tensor]:
     """The tracks (M,) whose points ``view`` is found to see and where (M, 2), as detected, each
-    searched with the patch of one of its ``usable`` (T,) observations, where the view's ``mask``
-    (or None) keeps."""
-    half, radius = config.matching.patch_half_size, math.ceil(config.reconstruction.max_reprojection_error)
+    searched within ``radius`` px of its projection with the patch of one of its ``usable`` (T,)
+    observations, where the view's ``mask`` (or None) keeps; the points the view observes
+    already only if ``observed_too``."""
+    half = config.matching.patch_half_size
     image = sources.at(view, 1.0)
     height, width = image.shape
     tracks_of, views_of = model.tracks.track, model.tracks.view
     seen_here = torch.zeros(model.tracks.num_tracks, dtype=torch.bool)
-    seen_here[tracks_of[views_of == view]] = True
+    if not observed_too:
+        seen_here[tracks_of[views_of == view]] = True
     candidates = torch.nonzero(model.has_point & ~seen_here).flatten()
     camera = Camera(model.K[view], model.R[view], model.t[view])
     X = model.points[candidates]

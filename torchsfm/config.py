@@ -453,9 +453,10 @@ class ReconstructionConfig:
     it: half of it, as COLMAP relaxes its initial angle). Each next view is resected from its tracks' 3-D points
     and needs ``min_resection_inliers`` (the resection threshold doubles, up to
     ``max_resection_threshold`` px, while it keeps fewer: see :func:`torchsfm.sfm.mapping.resect`); with
-    ``track_against_map``, a view that keeps too few even there is tracked against the map: the
-    model's points searched (NCC) within that threshold of where its widest resection puts them,
-    and the view resected again from what is found (:func:`torchsfm.sfm.mapping.pose_by_tracking`). New points need a triangulation angle of
+    ``track_against_map``, a view that needs a widened threshold, or keeps too few even at the
+    widest, is tracked against the map: the model's points searched (NCC) within the widest
+    threshold of where that resection puts them, and the view resected again at the RANSAC
+    threshold from what is found (:func:`torchsfm.sfm.mapping.pose_by_tracking`). New points need a triangulation angle of
     ``min_point_angle`` degrees, reprojection errors below ``max_reprojection_error`` px and
     ``min_track_views`` views at the end (the thesis keeps points seen in ≥ 3 views: set 3).
     Images whose larger side exceeds ``max_image_size`` px (0: never) are reduced by the smallest

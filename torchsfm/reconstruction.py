@@ -33,9 +33,10 @@ class Reconstruction:
             inliers at ``resection.ransac.inlier_threshold`` and registered at a wider threshold
             (px; see :func:`torchsfm.sfm.mapping.resect`): less certain than the others.
         tracked_resections: multi-view models only: input views whose resection kept too few
-            inliers even at the widest threshold and that were registered by tracking against
-            the map (:func:`torchsfm.sfm.mapping.pose_by_tracking`: the model's points searched
-            where that resection puts them), with the inliers of the resection from what was found.
+            inliers at ``resection.ransac.inlier_threshold`` and that were registered by
+            tracking against the map (:func:`torchsfm.sfm.mapping.pose_by_tracking`: the model's
+            points searched where the pose of a widened threshold puts them, the view resected
+            again at the threshold from what was found), with that resection's inliers.
         still_frames: multi-view models only: input views whose camera did not move from an
             earlier keyframe (``{view: keyframe}``, :func:`torchsfm.sfm.mapping.still_frames`):
             resected from the final model, not bundle-adjusted.

@@ -3,6 +3,8 @@ seen by three cameras, 80 of its points observed in the first two; the third vie
 size, at a third of the size, or through a lens whose radial distortion is known — is searched
 for them. Then Fountain-P11 with two views at a third of the size."""
 
+import math
+
 import pytest
 import torch
 import torch.nn.functional as functional
@@ -15,6 +17,8 @@ from torchsfm.camera import Camera, distort_image, distort_points
 from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import camera_errors, rotation_error_deg
 from torchsfm.images import read_image
+from torchsfm.estimators.absolute_pose import AbsolutePose
+from torchsfm.geometry.rotation import axis_angle_to_rotation
 from torchsfm.io.datasets import read_strecha
 from torchsfm.sfm.mapping import MapperState, pose_by_tracking, resect
 from torchsfm.sfm.projection_search import observations_by_projection
@@ -185,15 +189,15 @@ def test_low_passed_images_stay_within_their_cache_bound(monkeypatch):
     assert sources.kept_bytes == sum(image.nbytes for image in sources.made.values()) == 3 * 40 * 50 * 8
 
 
-def tracked_scene(seed: int = 0):
-    """The plane scene with view 2 unregistered and tied by its matches to all 80 points, 68 of
-    the ties wrong (corners anywhere in its image, as a repeated texture's false matches put
-    them): its resection keeps 12 inliers at any threshold, too few (20 needed)."""
+def tracked_scene(wrong_ties: int = 68, seed: int = 0):
+    """The plane scene with view 2 unregistered and tied by its matches to all 80 points,
+    ``wrong_ties`` of the ties wrong (corners anywhere in its image, as a repeated texture's false
+    matches put them): with 68, its resection keeps 12 inliers at any threshold, too few (20 needed)."""
     model, greys, distortion, points, camera = plane_scene("full", seed)
     generator = torch.Generator().manual_seed(seed)
     ties = camera.project(points[None])[0]
-    wrong = torch.randperm(80, generator=generator)[:68]
-    ties[wrong] = torch.rand(68, 2, generator=generator, dtype=torch.float64) * torch.tensor([319.0, 239.0], dtype=torch.float64)
+    wrong = torch.randperm(80, generator=generator)[:wrong_ties]
+    ties[wrong] = torch.rand(wrong_ties, 2, generator=generator, dtype=torch.float64) * torch.tensor([319.0, 239.0], dtype=torch.float64)
     corners = [model.corners[0], model.corners[1], ties]
     track = torch.arange(80).repeat_interleave(3)
     tracks = Tracks(view=torch.tensor([0, 1, 2]).repeat(80), corner=track.clone(), track=track, num_tracks=80)
@@ -239,3 +243,19 @@ def test_a_view_of_another_scene_is_not_tracked_into_the_model():
     assert isinstance(outcome, str) and "of the model's points found" in outcome, outcome
     assert_close(model.pixels, pixels)
     assert_close(model.R, R)
+
+
+def test_a_pose_from_a_widened_threshold_is_tracked_from_it():
+    """Given a prediction — a pose 0.5 degrees off, which puts the points about 2.6 px from where
+    view 2 sees them (as a resection at a widened threshold may) — the points are searched around
+    it, not around a pose of the view's own ties (all wrong here), and the view is resected from
+    what is found: as close to the truth as the found pixels allow (the bounds of the test above)."""
+    model, greys, distortion, points, camera, _ = tracked_scene(wrong_ties=80)
+    turn = axis_angle_to_rotation(torch.tensor([0.0, math.radians(0.5), 0.0], dtype=torch.float64))
+    prediction = AbsolutePose(R=turn @ camera.R, t=turn @ camera.t, inlier_mask=torch.ones(80, dtype=torch.bool),
+                              num_trials=torch.tensor(0), success=torch.tensor(True))
+    pose = pose_by_tracking(model, 2, greys, distortion, LINKED, Config(), torch.Generator().manual_seed(0), prediction=prediction)
+    assert not isinstance(pose, str), pose
+    assert int(pose.inlier_mask.sum()) >= 76
+    assert rotation_error_deg(pose.R, camera.R) < 0.3
+    assert float((Camera(camera.K, pose.R, pose.t).center - camera.center).norm()) < 0.03  # metres

@@ -59,7 +59,7 @@ class MapperState:
         self.t = torch.zeros(V, 3, dtype=torch.float64)
         self.registered = torch.zeros(V, dtype=torch.bool)
         self.loose_resections: dict[int, float] = {}  # view -> the widened threshold its resection needed (px)
-        self.tracked_resections: dict[int, int] = {}  # view -> inliers of its resection from points found by tracking against the map
+        self.tracked_resections: dict[int, int] = {}  # view -> inliers of its resection from the points tracking against the map found
         self.still_frames: dict[int, int] = {}  # view -> the keyframe it did not move from (posed, not adjusted)
         self.points = torch.zeros(tracks.num_tracks, 3, dtype=torch.float64)
         self.has_point = torch.zeros(tracks.num_tracks, dtype=torch.bool)
@@ -398,30 +398,36 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
 
 
 def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distortion: Tensor, linked: Tensor, config: Config,
-                     generator: torch.Generator | None, mask: Tensor | None = None) -> AbsolutePose | str:
-    """The pose of ``view`` — whose resection kept too few inliers even at the widest threshold —
-    tracked against the map, or why not. Its matches may tie many of its corners to the wrong
-    points (a repeated texture: a scaffolded façade seen 12 m further on), so few agree on a pose,
-    but the pose those few fix within ``max_resection_threshold`` predicts where the model's
-    points lie in its image: each point is searched there, within that threshold, by the patch of
+                     generator: torch.Generator | None, mask: Tensor | None = None, prediction: AbsolutePose | None = None) -> AbsolutePose | str:
+    """The pose of ``view`` tracked against the map, or why not: each of the model's points is
+    searched within ``max_resection_threshold`` of where a predicted pose puts it, by the patch of
     its nearest observation (:func:`~torchsfm.sfm.projection_search.points_seen_by_projection`),
     and the view is resected again, at the RANSAC threshold, from what is found. The pose stands
     with ``min_resection_inliers`` inliers, whose observations then join the model (each
     replacing the view's own tie to that point); otherwise the view's pose is left as it was.
-    ``greys``, ``distortion``, ``linked`` and the view's ``mask`` as for
-    :func:`~torchsfm.sfm.projection_search.observations_by_projection`; the draws come from a
-    generator seeded as ``generator`` (a search that fails leaves the caller's stream as it was)."""
+
+    The prediction: the ``prediction`` given (a resection that needed a widened threshold: its
+    points, up to that far off, are a weaker support than the points found within the RANSAC
+    threshold), else the view's resection from its own ties at the widest threshold. Its matches
+    may tie many of its corners to the wrong points (a repeated texture: a scaffolded façade seen
+    12 m further on), so that too few agree on a pose for it to register, but the pose those few
+    fix predicts where the points lie. ``greys``, ``distortion``, ``linked`` and the view's
+    ``mask`` as for :func:`~torchsfm.sfm.projection_search.observations_by_projection`; the draws
+    come from a generator seeded as ``generator`` (a search that fails leaves the caller's stream
+    as it was)."""
     settings, needed = config.resection, config.reconstruction.min_resection_inliers
     widest = config.reconstruction.max_resection_threshold
     generator = side_generator(generator)
-    rows = model.observing(view)
-    wide = dataclasses.replace(config, resection=dataclasses.replace(
-        settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=widest)))
-    try:
-        predicted = estimate_absolute_pose(model.points[model.tracks.track[rows]], model.pixels[rows], model.K[view], config=wide,
-                                           generator=generator)
-    except TorchSfmError as error:
-        return f"no pose to track it from: {error}"
+    predicted = prediction
+    if predicted is None:
+        rows = model.observing(view)
+        wide = dataclasses.replace(config, resection=dataclasses.replace(
+            settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=widest)))
+        try:
+            predicted = estimate_absolute_pose(model.points[model.tracks.track[rows]], model.pixels[rows], model.K[view], config=wide,
+                                               generator=generator)
+        except TorchSfmError as error:
+            return f"no pose to track it from: {error}"
     before = model.R[view].clone(), model.t[view].clone()
     model.R[view], model.t[view] = predicted.R, predicted.t
     tracks, raw = points_seen_by_projection(model, greys, distortion, linked, config, view, math.ceil(widest), mask)
@@ -436,7 +442,7 @@ def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distort
             pass
     if pose is None or kept < needed:
         model.R[view], model.t[view] = before
-        return (f"tracked against the map from the pose its {int(predicted.inlier_mask.sum())} inliers within {widest:g} px fix, "
+        return (f"tracked against the map from the pose of {int(predicted.inlier_mask.sum())} inliers: "
                 f"{tracks.numel()} of the model's points found, {kept} within {settings.ransac.inlier_threshold:g} px of one pose (needs {needed})")
     join_observations(model, distortion, views[pose.inlier_mask], tracks[pose.inlier_mask], raw[pose.inlier_mask])
     return pose
@@ -815,6 +821,19 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     linked = torch.zeros(V, V, dtype=torch.bool)  # the verified pairs: a view is searched for its partners' points
     ends = torch.tensor(list(pairs), dtype=torch.long).reshape(-1, 2).T
     linked[ends[0], ends[1]] = linked[ends[1], ends[0]] = True
+    def track(view: int, prediction: AbsolutePose | None = None) -> AbsolutePose | str | None:
+        """:func:`pose_by_tracking`, noted and reported; None where ``reconstruction.track_against_map``
+        is off or there are no images (tracks given without them)."""
+        if not (config.reconstruction.track_against_map and state.greys):
+            return None
+        mask = state.masks[view] if state.masks is not None else None
+        tracked = timed("tracking against the map", lambda: pose_by_tracking(model, view, state.greys, state.distortion, linked, config,
+                                                                             state.generator, mask, prediction))
+        if not isinstance(tracked, str):
+            model.tracked_resections[view] = int(tracked.inlier_mask.sum())
+            state.report(f"view {view} tracked against the map: {model.tracked_resections[view]} inliers among the points found")
+        return tracked
+
     (first, second), R, t = starting_pair(state, pairs, config, allowed, timed)
     model = MapperState(tracks, state.corners, state.raw, state.K, config)
     model.R[second], model.t[second] = R.double(), t.double()
@@ -858,16 +877,11 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
         found = timed("resection", lambda: resect_views(model, candidates, config, state.generator))
         registered = 0
         for view, outcome in zip(candidates, found):
-            if isinstance(outcome, str) and config.reconstruction.track_against_map and state.greys:  # too few inliers at any threshold
-                tracked = timed("tracking against the map", lambda: pose_by_tracking(
-                    model, view, state.greys, state.distortion, linked, config, state.generator,
-                    state.masks[view] if state.masks is not None else None))
-                if isinstance(tracked, str):
-                    outcome = f"{outcome}; {tracked}"
-                else:
-                    model.tracked_resections[view] = int(tracked.inlier_mask.sum())
-                    state.report(f"view {view} tracked against the map: {model.tracked_resections[view]} inliers among the points found")
-                    outcome = tracked, config.resection.ransac.inlier_threshold
+            tracked = track(view) if isinstance(outcome, str) else None  # too few inliers at any threshold
+            if isinstance(tracked, AbsolutePose):
+                outcome = tracked, config.resection.ransac.inlier_threshold
+            elif tracked is not None:
+                outcome = f"{outcome}; {tracked}"
             if isinstance(outcome, str):
                 unregistered[view] = outcome
                 continue
@@ -877,7 +891,11 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
                 if refused is not None:
                     unregistered[view] = refused
                     continue
-                model.loose_resections[view] = threshold
+                tracked = track(view, pose)  # resected from points found within the RANSAC threshold where it can be
+                if isinstance(tracked, AbsolutePose):
+                    pose, threshold = tracked, config.resection.ransac.inlier_threshold
+                else:
+                    model.loose_resections[view] = threshold
             model.R[view], model.t[view] = pose.R, pose.t
             model.registered[view] = True
             order.append(view)

@@ -802,7 +802,8 @@ def grow_model(state, config: Config, allowed: Tensor) -> tuple[MapperState, dic
     """One model over the ``allowed`` (V,) views: the initial pair among them, then repeatedly the
     views that see most reconstructed tracks — every view that sees ``RESECTION_SHARE`` of the
     best one's count, resected together (:func:`resect_views`) and registered most first (a view
-    that fails is retried after the next registration; when no view sees enough points, one with
+    whose resection keeps too few inliers at the RANSAC threshold is tracked against the map,
+    :func:`pose_by_tracking`; a view that fails is retried after the next registration; when no view sees enough points, one with
     a verified pair into the model is posed from it, :func:`pose_from_pair`) — then bundle adjustment,
     retriangulation, outlier removal and, when K was estimated, its refinement; last the
     observations its views miss, found by projection among verified partners

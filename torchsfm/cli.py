@@ -96,7 +96,7 @@ def _reconstruct(args: argparse.Namespace) -> None:
         print(f"view {view['index']} registered at a widened resection threshold of {view['threshold_px']:g} px (less certain)")
     for view in summary["tracked_resections"]:
         print(f"view {view['index']} registered by tracking against the map ({view['inliers']} inliers among the model's points "
-              "found where its widest resection put them)")
+              "found where a resection at a widened threshold put them)")
     for view in summary["still_frames"]:
         print(f"view {view['index']}: the camera did not move from view {view['keyframe']}; resected from the model, not adjusted")
     _print_moving_objects(summary)

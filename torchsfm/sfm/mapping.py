@@ -366,10 +366,8 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
         if first is not None:
             pose, first = first, None
         else:
-            trial = dataclasses.replace(config, resection=dataclasses.replace(
-                settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=threshold)))
             try:
-                pose = estimate_absolute_pose(X, x, K, config=trial, generator=generator)
+                pose = estimate_absolute_pose(X, x, K, config=at_resection_threshold(config, threshold), generator=generator)
             except TorchSfmError as error:
                 return f"resection failed: {error}"
         kept = int(pose.inlier_mask.sum())
@@ -378,6 +376,13 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
         if 2 * threshold > config.reconstruction.max_resection_threshold:
             return f"resection kept {kept} inliers within {threshold:g} px (needs {needed})"
         threshold *= 2
+
+
+def at_resection_threshold(config: Config, threshold: float) -> Config:
+    """``config`` with the resection's RANSAC threshold set to ``threshold`` px."""
+    settings = config.resection
+    return dataclasses.replace(config, resection=dataclasses.replace(settings, ransac=dataclasses.replace(settings.ransac,
+                                                                                                      inlier_threshold=threshold)))
 
 
 def resect_views(model: MapperState, views: list[int], config: Config, generator: torch.Generator
@@ -421,18 +426,16 @@ def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distort
     predicted = prediction
     if predicted is None:
         rows = model.observing(view)
-        wide = dataclasses.replace(config, resection=dataclasses.replace(
-            settings, ransac=dataclasses.replace(settings.ransac, inlier_threshold=widest)))
         try:
-            predicted = estimate_absolute_pose(model.points[model.tracks.track[rows]], model.pixels[rows], model.K[view], config=wide,
-                                               generator=generator)
+            predicted = estimate_absolute_pose(model.points[model.tracks.track[rows]], model.pixels[rows], model.K[view],
+                                               config=at_resection_threshold(config, widest), generator=generator)
         except TorchSfmError as error:
             return f"no pose to track it from: {error}"
     before = model.R[view].clone(), model.t[view].clone()
     model.R[view], model.t[view] = predicted.R, predicted.t
     tracks, raw = points_seen_by_projection(model, greys, distortion, linked, config, view, math.ceil(widest), mask)
     views = torch.full_like(tracks, view)
-    pose, kept = None, 0
+    kept = 0
     if tracks.numel() >= needed:  # enough to be worth a resection (its errors, e.g. collinear points, leave kept at 0)
         try:
             pose = estimate_absolute_pose(model.points[tracks], model_pixels(model, distortion, views, raw)[1], model.K[view],
@@ -440,7 +443,7 @@ def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distort
             kept = int(pose.inlier_mask.sum())
         except TorchSfmError:
             pass
-    if pose is None or kept < needed:
+    if kept < needed:
         model.R[view], model.t[view] = before
         return (f"tracked against the map from the pose of {int(predicted.inlier_mask.sum())} inliers: "
                 f"{tracks.numel()} of the model's points found, {kept} within {settings.ransac.inlier_threshold:g} px of one pose (needs {needed})")

@@ -20,8 +20,9 @@ never used to choose any setting); and, where
 ``--no-K`` is given, the same without the intrinsics. With ``--set moving_objects.reconstruct_objects=true`` (and
 ``moving_objects.enabled=true``) the moving bodies found are listed too. For each: views registered, camera errors after a similarity alignment to
 the ground truth (centre error as a share of the path extent, rotation error; medians and
-maxima), consecutive-frame relative rotation error, the still frames (:func:`torchsfm.sfm.mapping.still_frames`) and the views
-tracked against the map (:func:`torchsfm.sfm.mapping.pose_by_tracking`) where any, seconds — beside pycolmap on the same images
+maxima), consecutive-frame relative rotation error, the still frames (:func:`torchsfm.sfm.mapping.still_frames`), the views
+tracked against the map (:func:`torchsfm.sfm.mapping.pose_by_tracking`) and those registered loosely (a resection at a
+widened threshold that tracking could not replace: ``Reconstruction.loose_resections``) where any, seconds — beside pycolmap on the same images
 and K where it is installed (``bench`` extra; SIFT, exhaustive matching, incremental mapping; with
 ``--no-K`` its own default, SIMPLE_RADIAL: one focal length from its prior and one radial distortion coefficient,
 refined, the principal point at the centre).
@@ -211,8 +212,10 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
         for body in model.objects) or "none")
     still = f", {len(model.still_frames)} still frames (resected, not adjusted)" if model.still_frames else ""
     tracked = f", views {sorted(model.tracked_resections)} tracked against the map" if model.tracked_resections else ""
+    loose = (f", view{'s' if len(model.loose_resections) > 1 else ''} " + ", ".join(f"{view} at {threshold:g} px" for view, threshold in sorted(model.loose_resections.items()))
+             + " registered loosely") if model.loose_resections else ""
     return (f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}"
-            f"{still}{tracked}, {seconds:.1f} s")
+            f"{still}{tracked}{loose}, {seconds:.1f} s")
 
 
 def colmap_pinhole(K: torch.Tensor) -> list[float]:

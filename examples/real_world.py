@@ -212,8 +212,9 @@ def run_torchsfm(sequence: StrechaSequence, with_K: bool, config: torchsfm.Confi
         for body in model.objects) or "none")
     still = f", {len(model.still_frames)} still frames (resected, not adjusted)" if model.still_frames else ""
     tracked = f", views {sorted(model.tracked_resections)} tracked against the map" if model.tracked_resections else ""
-    loose = (f", view{'s' if len(model.loose_resections) > 1 else ''} " + ", ".join(f"{view} at {threshold:g} px" for view, threshold in sorted(model.loose_resections.items()))
-             + " registered loosely") if model.loose_resections else ""
+    loose = ", ".join(f"{view} at {threshold:g} px" for view, threshold in sorted(model.loose_resections.items()))
+    if loose:
+        loose = f", view{'s' if len(model.loose_resections) > 1 else ''} {loose} registered loosely"
     return (f"{len(index)}/{len(sequence.images)} views, {errors_row(model.cameras.R, model.cameras.t, sequence, index)}{focal}{bodies}"
             f"{still}{tracked}{loose}, {seconds:.1f} s")
 

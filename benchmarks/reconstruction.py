@@ -5,15 +5,18 @@ ground-truth K only. pycolmap runs SIFT extraction, exhaustive matching and incr
 with the same fixed PINHOLE intrinsics (no focal, principal point or distortion refinement).
 Printed for both: views registered, points, mean track length, reprojection RMS, camera errors
 after a similarity alignment to the ground truth (:func:`torchsfm.evaluation.camera_errors`)
-and wall time; the last column is time / torchsfm's time.
+and wall time. Each pipeline runs ``--repeats`` times, the two alternating (a slow spell of a shared
+machine then falls on both); the seconds are the median over the runs, the model figures those of
+the last run; the last column is time / torchsfm's time.
 
     pip install -e .[bench]
-    python benchmarks/reconstruction.py [--data ../shared/data] [--threads 2]
+    python benchmarks/reconstruction.py [--data ../shared/data] [--threads 2] [--repeats 3]
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -81,6 +84,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each pipeline, alternating; the median time is printed")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     runners = {"torchsfm reconstruct": run_torchsfm}
@@ -94,9 +98,14 @@ def main() -> None:
         sequence = read_strecha(args.data / name)
         print(f"\n{name}: {len(sequence.images)} views")
         print(f"{'pipeline':28s} {'views':>5s} {'points':>7s} {'track':>6s} {'RMS px':>7s} {'centre %':>9s} {'rot °':>7s} {'rel rot °':>9s} {'s':>7s} {'time/ours':>9s}")
+        runs = {runner_name: [] for runner_name in runners}
+        for _ in range(args.repeats):
+            for runner_name, runner in runners.items():
+                runs[runner_name].append(runner(sequence))
         reference = None
-        for runner_name, runner in runners.items():
-            views, points, track, rms, errors, seconds = runner(sequence)
+        for runner_name, results in runs.items():
+            views, points, track, rms, errors, _ = results[-1]
+            seconds = statistics.median(result[-1] for result in results)
             reference = reference or seconds
             print(f"{runner_name:28s} {views:5d} {points:7d} {track:6.2f} {rms:7.3f} {100 * float(errors.centre.median()) / errors.extent:9.4f} "
                   f"{float(errors.rotation.median()):7.3f} {float(errors.relative_rotation.median()):9.3f} {seconds:7.1f} {seconds / reference:9.2f}")

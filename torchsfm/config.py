@@ -74,7 +74,12 @@ class RansacConfig:
     Up to ``local_refits`` non-minimal fits on the inliers polish each new best model (LO-RANSAC;
     ours, 0 is the thesis' plain RANSAC). ``preemptive_points`` > 0 scores every hypothesis on
     that many random points first and fully scores only the best ``preemptive_keep`` fraction
-    (ours, for speed; 0 scores everything on all points).
+    (ours, for speed; 0 scores everything on all points). ``min_inliers`` > 0 is the support
+    below which a model is of no use to the caller (e.g. a resection the mapper would refuse):
+    the adaptive count of eq. 3.3.7 takes the inlier ratio as at least ``min_inliers`` / N, so a
+    problem stops once it has drawn the samples that find such a model at ``confidence``, even if
+    its best has fewer (as COLMAP's ``min_inlier_ratio``; a problem with no such model otherwise
+    draws up to ``max_trials``).
     """
 
     inlier_threshold: float = 1.0
@@ -88,6 +93,7 @@ class RansacConfig:
     local_refits: int = 3
     preemptive_points: int = 100
     preemptive_keep: float = 0.125
+    min_inliers: int = 0
 
     def __post_init__(self) -> None:
         _require_choices(self)
@@ -100,6 +106,7 @@ class RansacConfig:
         _require(self.local_refits >= 0, "local_refits", self.local_refits, "must be >= 0")
         _require(self.preemptive_points >= 0, "preemptive_points", self.preemptive_points, "must be >= 0")
         _require(0 < self.preemptive_keep <= 1, "preemptive_keep", self.preemptive_keep, "must lie in (0, 1]")
+        _require(self.min_inliers >= 0, "min_inliers", self.min_inliers, "must be >= 0")
 
 
 @dataclass(frozen=True)

@@ -62,6 +62,20 @@ def test_more_outliers_need_more_trials_and_the_cap_holds():
     assert capped.num_trials.item() <= 100
 
 
+def test_a_problem_without_a_useful_model_stops_where_one_would_have_been_found():
+    """``min_inliers`` = 100 of 200 rows: a problem whose best model keeps fewer (20 % inliers)
+    draws what eq. 3.3.7 asks at the ratio 0.5, not ``max_trials``; a problem with such a model
+    (70 % inliers) still finds every one of them."""
+    poor, rich = synthetic_two_view(200, outlier_ratio=0.8, seed=4), synthetic_two_view(200, outlier_ratio=0.3, seed=5)
+    data = _data(poor, rich)
+    config = dataclasses.replace(RansacConfig(), min_inliers=100)
+    result = ransac(FundamentalModel(data), data, config, generator=torch.Generator().manual_seed(0))
+    assert result.num_trials[0] == required_trials(torch.tensor([0.5]), 8, 0.99, 10_000)[0]
+    assert result.inlier_mask[1][rich.is_inlier].all() and result.inlier_mask[1].sum() < 150
+    plain = ransac(FundamentalModel(data[:1]), data[:1], RansacConfig(), generator=torch.Generator().manual_seed(0))
+    assert plain.num_trials[0] == 10_000
+
+
 def test_padding_and_too_small_problems():
     a = synthetic_two_view(100, outlier_ratio=0.3, seed=3)
     data = torch.zeros(2, 100, 4, dtype=torch.float64)

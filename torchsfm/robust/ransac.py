@@ -107,7 +107,8 @@ def ransac(
     while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
     sees the inlier ratio of a refined model; the refits end early once no problem's inliers
     moved (a refit of the same inliers would repeat the last one). A problem stops drawing once its adaptive trial
-    count is reached; later rounds run on the problems still drawing only (the model plug-in's
+    count is reached (its inlier ratio taken as at least ``min_inliers`` / N: a model with fewer
+    is of no use); later rounds run on the problems still drawing only (the model plug-in's
     ``restricted``), so a batch costs about what its problems cost one at a time, not its
     slowest problem times B.
 
@@ -130,6 +131,7 @@ def ransac(
     if valid is None:
         valid = torch.ones(B, N, dtype=torch.bool, device=device)
     num_valid = valid.sum(-1)
+    useful_ratio = config.min_inliers / num_valid.clamp_min(1).double()  # (B,): the adaptive count's floor
     padded = not bool(valid.all())
     threshold_sq = config.inlier_threshold**2
     score_fn = SCORINGS[config.scoring]
@@ -213,7 +215,7 @@ def ransac(
                 break  # the same inliers give the same refit: every further one would repeat this one
         best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
         trials[live] += num_samples
-        ratio = best_inliers.sum(-1).double() / num_valid.clamp_min(1).double()
+        ratio = torch.maximum(best_inliers.sum(-1).double() / num_valid.clamp_min(1).double(), useful_ratio)
         needed = required_trials(ratio, s, config.confidence, config.max_trials)
         active = active & (trials < needed)
 

@@ -367,7 +367,7 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
             pose, first = first, None
         else:
             try:
-                pose = estimate_absolute_pose(X, x, K, config=at_resection_threshold(config, threshold), generator=generator)
+                pose = estimate_absolute_pose(X, x, K, config=at_resection_threshold(config, threshold, needed), generator=generator)
             except TorchSfmError as error:
                 return f"resection failed: {error}"
         kept = int(pose.inlier_mask.sum())
@@ -378,11 +378,12 @@ def resect(X: Tensor, x: Tensor, K: Tensor, config: Config, generator: torch.Gen
         threshold *= 2
 
 
-def at_resection_threshold(config: Config, threshold: float) -> Config:
-    """``config`` with the resection's RANSAC threshold set to ``threshold`` px."""
-    settings = config.resection
-    return dataclasses.replace(config, resection=dataclasses.replace(settings, ransac=dataclasses.replace(settings.ransac,
-                                                                                                      inlier_threshold=threshold)))
+def at_resection_threshold(config: Config, threshold: float, needed: int = 0) -> Config:
+    """``config`` with the resection's RANSAC threshold set to ``threshold`` px and its
+    ``min_inliers`` to ``needed`` (a pose with fewer inliers is refused: no more samples are drawn
+    than finding one with that many takes)."""
+    ransac = dataclasses.replace(config.resection.ransac, inlier_threshold=threshold, min_inliers=needed)
+    return dataclasses.replace(config, resection=dataclasses.replace(config.resection, ransac=ransac))
 
 
 def resect_views(model: MapperState, views: list[int], config: Config, generator: torch.Generator
@@ -395,7 +396,8 @@ def resect_views(model: MapperState, views: list[int], config: Config, generator
     if len(views) == 1:
         return [resect(model.points[tracks.track[rows[0]]], model.pixels[rows[0]], model.K[views[0]], config, generator)]
     data, valid = pad_rows([torch.cat([model.points[tracks.track[mine]], model.pixels[mine]], -1) for mine in rows])
-    poses = estimate_absolute_pose(data[..., :3], data[..., 3:], model.K[views], valid=valid, config=config, generator=generator)
+    first_rung = at_resection_threshold(config, config.resection.ransac.inlier_threshold, config.reconstruction.min_resection_inliers)
+    poses = estimate_absolute_pose(data[..., :3], data[..., 3:], model.K[views], valid=valid, config=first_rung, generator=generator)
     return [resect(model.points[tracks.track[mine]], model.pixels[mine], model.K[view], config, generator,
                    first=AbsolutePose(R=poses.R[b], t=poses.t[b], inlier_mask=poses.inlier_mask[b, : mine.numel()],
                                       num_trials=poses.num_trials[b], success=poses.success[b]))
@@ -439,7 +441,8 @@ def pose_by_tracking(model: MapperState, view: int, greys: list[Tensor], distort
     if tracks.numel() >= needed:  # enough to be worth a resection (its errors, e.g. collinear points, leave kept at 0)
         try:
             pose = estimate_absolute_pose(model.points[tracks], model_pixels(model, distortion, views, raw)[1], model.K[view],
-                                          config=config, generator=generator)
+                                          config=at_resection_threshold(config, settings.ransac.inlier_threshold, needed),
+                                          generator=generator)
             kept = int(pose.inlier_mask.sum())
         except TorchSfmError:
             pass

@@ -2,7 +2,7 @@ import torch
 from kornia.feature import SIFTDescriptor, SIFTFeature
 
 from torchsfm.images import to_unit_float
-from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, sift_features
+from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, sift_features
 
 
 def test_a_patch_module_in_batches_gives_the_same_numbers():
@@ -13,6 +13,18 @@ def test_a_patch_module_in_batches_gives_the_same_numbers():
     with torch.no_grad():
         assert torch.equal(InBatches(describe, 256)(patches), describe(patches))
         assert InBatches(describe, 256)(patches[:0]).shape == (0, 128)
+
+
+def test_the_pooled_descriptor_is_kornias():
+    """Smooth random patches (a few strong gradients: bins clipped at 0.2), one of them flat (no
+    gradient: a zero descriptor), with and without RootSIFT: bit for bit Kornia's SIFT descriptor."""
+    coarse = torch.rand(300, 1, 6, 6, generator=torch.Generator().manual_seed(2))
+    patches = torch.nn.functional.interpolate(coarse, size=(41, 41), mode="bilinear")
+    patches[7] = 0.5
+    for rootsift in (True, False):
+        kornia = SIFTDescriptor(41, rootsift=rootsift)
+        with torch.no_grad():
+            assert torch.equal(PooledSIFTDescriptor.like(kornia)(patches), kornia(patches))
 
 
 def test_sift_features_are_kornias():

@@ -8,11 +8,14 @@ link views the mapper left out (:class:`~torchsfm.sfm.stages.BridgeWithSift`).""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
-from kornia.feature import LAFDescriptor, SIFTFeature, get_laf_center, match_smnn
+from kornia.feature import LAFDescriptor, SIFTDescriptor, SIFTFeature, get_laf_center, match_smnn
+from kornia.filters import spatial_gradient
 
 from torchsfm.camera import undistort_points
 from torchsfm.config import PairsConfig
@@ -61,8 +64,8 @@ DESCRIBED_PER_CALL = 256  # patches per call of the patch descriptor
 
 
 class InBatches(nn.Module):
-    """A patch module (P, C, h, w) -> (P, D) applied to ``size`` patches at a time: Kornia's
-    SIFT descriptor runs some twenty element-wise passes over its input, and over a whole
+    """A patch module (P, C, h, w) -> (P, D) applied to ``size`` patches at a time: the SIFT
+    patch descriptor runs a dozen or more element-wise passes over its input, and over a whole
     image's 41 × 41 patches (4000: 27 MB a pass) they stream from memory, where blocks of 256
     stay in the caches (a sixth of the time on this machine; the same numbers — no pass mixes
     patches)."""
@@ -73,6 +76,39 @@ class InBatches(nn.Module):
 
     def forward(self, patches: Tensor) -> Tensor:
         return torch.cat([self.module(block) for block in patches.split(self.size)]) if patches.shape[0] else self.module(patches)
+
+
+class PooledSIFTDescriptor(SIFTDescriptor):
+    """Kornia's SIFT patch descriptor with the gradient's orientation bins pooled by one
+    convolution over all of them, where Kornia runs one per bin over a mask of the bin: the
+    magnitude is split between the two nearest bins (one scatter into an (P, bins, h, w) stack)
+    and every bin is pooled by the same kernel — the same numbers (``tests/sfm/test_sift.py``),
+    in two thirds of the time. (P, 1, h, w) float patches -> (P, 128) descriptors."""
+
+    @classmethod
+    def like(cls, descriptor: SIFTDescriptor) -> PooledSIFTDescriptor:
+        """One with ``descriptor``'s patch size, bins, clipping and RootSIFT setting."""
+        return cls(descriptor.patch_size, descriptor.num_ang_bins, descriptor.num_spatial_bins, descriptor.rootsift, descriptor.clipval)
+
+    def forward(self, patches: Tensor) -> Tensor:
+        gradient = spatial_gradient(patches, "diff")
+        gx, gy = gradient[:, :, 0], gradient[:, :, 1]
+        squared = gx * gx + gy * gy
+        moving = squared > 0  # a flat pixel has no orientation and adds nothing
+        magnitude = torch.where(moving, torch.sqrt(squared + self.eps), 0.0) * self.gk.to(patches.dtype)
+        angle = torch.where(moving, torch.atan2(gy, gx + self.eps) + 2 * math.pi, 2 * math.pi)
+        position = self.num_ang_bins * angle / (2 * math.pi)  # in bins
+        lower = torch.floor(position)
+        upper_share = position - lower
+        lower_bin = (lower % self.num_ang_bins).long()
+        P, _, h, w = patches.shape
+        bins = patches.new_zeros(P, self.num_ang_bins, h, w)
+        bins.scatter_(1, lower_bin, (1.0 - upper_share) * magnitude)
+        bins.scatter_add_(1, (lower_bin + 1) % self.num_ang_bins, upper_share * magnitude)
+        pooled = F.conv2d(bins.view(P * self.num_ang_bins, 1, h, w), self.pk.weight.to(patches.dtype), None, self.pk.stride,
+                          self.pk.padding).view(P, -1)
+        pooled = F.normalize(F.normalize(pooled, dim=1).clamp(0.0, self.clipval), dim=1)
+        return torch.sqrt(F.normalize(pooled, p=1, dim=1) + self.eps) if self.rootsift else pooled
 
 
 def sift_features(greys: list[Tensor], num_features: int, masks: list[Tensor | None] | None = None
@@ -93,7 +129,7 @@ def _describe(grey: Tensor, mask: Tensor | None, num_features: int) -> tuple[Ten
     a SIFT module of its own (its construction takes milliseconds), for a thread of its own."""
     sift = SIFTFeature(num_features=num_features)
     if isinstance(sift.descriptor, LAFDescriptor):
-        sift.descriptor.descriptor = InBatches(sift.descriptor.descriptor, DESCRIBED_PER_CALL)
+        sift.descriptor.descriptor = InBatches(PooledSIFTDescriptor.like(sift.descriptor.descriptor), DESCRIBED_PER_CALL)
     with torch.no_grad():
         frames, _, described = sift(to_unit_float(grey[None]))
     centres = get_laf_center(frames)[0].double()

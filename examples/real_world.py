@@ -179,6 +179,22 @@ def cases(data: Path, work: Path, names: list[str]) -> dict[str, StrechaSequence
         "kitti06_shuffled": subset(kitti, shuffle(51)),
         "kitti06_reversed": subset(kitti, list(range(50, -1, -1))),
         "merton": read_merton(data / "oxford_merton1"),
+        # added after the mapper was settled, as sets it had not seen (other steps, starts, orders)
+        "fountain_every2": subset(fountain, list(range(0, 11, 2))),
+        "fountain_reversed": subset(fountain, list(range(10, -1, -1))),
+        "fountain_every3_from1": subset(fountain, [1, 4, 7, 10]),
+        "fountain_every3_shuffled": subset(fountain, [9, 0, 6, 3]),
+        "fountain_1_5_9": subset(fountain, [1, 5, 9]),
+        "herzjesu_every2": subset(herzjesu, [0, 2, 4, 6]),
+        "herzjesu_every2_from1": subset(herzjesu, [1, 3, 5, 7]),
+        "herzjesu_reversed": subset(herzjesu, list(range(7, -1, -1))),
+        "herzjesu_1_4_7": subset(herzjesu, [1, 4, 7]),
+        "kitti06_every4": subset(kitti, list(range(0, 51, 4))),
+        "kitti06_every4_from2": subset(kitti, list(range(2, 51, 4))),
+        "kitti06_every3_shuffled": subset(kitti, [3 * k for k in shuffle(17)]),
+        "kitti06_every5_reversed": subset(kitti, list(range(50, -1, -5))),
+        "kitti06_first25_every2": subset(kitti, list(range(0, 25, 2))),
+        "kitti06_last26": subset(kitti, list(range(25, 51))),
     }
     chosen.update({name: make() for name, make in made.items() if not names or name in names})
     return {name: chosen[name] for name in names} if names else chosen

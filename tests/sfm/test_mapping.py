@@ -6,6 +6,8 @@ from torch.testing import assert_close
 from torchsfm.camera import project, projection_matrix
 from torchsfm.config import Config, with_overrides
 from torchsfm.geometry.rotation import axis_angle_to_rotation
+import torchsfm.sfm.mapping as mapping
+from torchsfm.robust.ransac import required_trials
 from torchsfm.sfm.mapping import MapperState, bundle, resect
 from torchsfm.sfm.tracks import Tracks
 from torchsfm.testing import look_at_rotation
@@ -85,6 +87,26 @@ def test_a_resection_that_keeps_too_few_inliers_widens_its_threshold_and_says_so
     scrambled = pixels[torch.randperm(60, generator=generator)]
     reason = resect(points, scrambled, state.K[1], config, generator)
     assert isinstance(reason, str) and "within 8 px (needs 50)" in reason
+
+
+def test_a_resection_draws_only_what_a_usable_pose_takes(monkeypatch):
+    """Scrambled pixels (no pose fits): each rung of the threshold ladder stops after the samples
+    that would have found a pose with ``min_resection_inliers`` (20) of the 60 points at the
+    RANSAC confidence — eq. 3.3.7 at the ratio 1/3 — not after ``max_trials``."""
+    _, _, points, state, config = sequence(num_views=2, num_points=60)
+    drawn, estimate = [], mapping.estimate_absolute_pose
+
+    def counted(*args, **kwargs):
+        pose = estimate(*args, **kwargs)
+        drawn.append(int(pose.num_trials))
+        return pose
+
+    monkeypatch.setattr(mapping, "estimate_absolute_pose", counted)
+    generator = torch.Generator().manual_seed(2)
+    scrambled = state.corners[1][torch.randperm(60, generator=generator)]
+    assert isinstance(resect(points, scrambled, state.K[1], config, generator), str)
+    expected = int(required_trials(torch.tensor([20 / 60]), 3, config.resection.ransac.confidence, config.resection.ransac.max_trials)[0])
+    assert drawn == [expected] * 3  # 2, 4 and 8 px
 
 
 def test_the_parallax_screen_measures_the_triangulation_angle_from_F():

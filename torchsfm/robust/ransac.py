@@ -131,7 +131,8 @@ def ransac(
     if valid is None:
         valid = torch.ones(B, N, dtype=torch.bool, device=device)
     num_valid = valid.sum(-1)
-    useful_ratio = config.min_inliers / num_valid.clamp_min(1).double()  # (B,): the adaptive count's floor
+    valid_counts = num_valid.clamp_min(1).double()  # (B,) the denominators of the inlier ratios
+    useful_ratio = config.min_inliers / valid_counts  # (B,): the adaptive count's floor
     padded = not bool(valid.all())
     threshold_sq = config.inlier_threshold**2
     score_fn = SCORINGS[config.scoring]
@@ -215,7 +216,7 @@ def ransac(
                 break  # the same inliers give the same refit: every further one would repeat this one
         best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
         trials[live] += num_samples
-        ratio = torch.maximum(best_inliers.sum(-1).double() / num_valid.clamp_min(1).double(), useful_ratio)
+        ratio = torch.maximum(best_inliers.sum(-1).double() / valid_counts, useful_ratio)
         needed = required_trials(ratio, s, config.confidence, config.max_trials)
         active = active & (trials < needed)
 

@@ -105,8 +105,9 @@ def ransac(
     ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
     problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
     while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
-    sees the inlier ratio of a refined model; the refits end early once no problem's inliers
-    moved (a refit of the same inliers would repeat the last one). A problem stops drawing once its adaptive trial
+    sees the inlier ratio of a refined model; each refit runs on the problems whose inliers moved
+    at the last one only, and the refits end once none did (a refit of the same inliers would
+    repeat the last one). A problem stops drawing once its adaptive trial
     count is reached (its inlier ratio taken as at least ``min_inliers`` / N: a model with fewer
     is of no use); later rounds run on the problems still drawing only (the model plug-in's
     ``restricted``), so a batch costs about what its problems cost one at a time, not its
@@ -203,17 +204,22 @@ def ransac(
         current = where_per_problem(improved, chosen, best_model[live])
         current_score = torch.where(improved, round_score, best_score[live])
         current_inliers = where_per_problem(improved, chosen_inliers, best_inliers[live])
+        refitting = improved  # (P,) the problems whose refits go on
         for _ in range(config.local_refits if bool(improved.any()) else 0):
-            refit = live_model.fit_weighted(live_data, current_inliers.to(data.dtype))
-            ok = improved & (current_inliers.sum(-1) >= s)
-            score, inliers = evaluate(live_model, refit[:, None], ok[:, None], live_data, live_valid)
-            better = improved & (score[:, 0] >= current_score)
-            moved = better & (inliers[:, 0] != current_inliers).any(-1)
-            current = where_per_problem(better, refit, current)
-            current_score = torch.where(better, score[:, 0], current_score)
-            current_inliers = where_per_problem(better, inliers[:, 0], current_inliers)
+            # only the problems whose inliers moved: the others' refit would repeat their last one
+            rows = torch.nonzero(refitting).flatten()  # (R,)
+            own = live_model if rows.numel() == P else live_model.restricted(rows)
+            mine = current_inliers[rows]
+            refit = own.fit_weighted(live_data[rows], mine.to(data.dtype))
+            score, inliers = evaluate(own, refit[:, None], (mine.sum(-1) >= s)[:, None], live_data[rows], live_valid[rows])
+            better = score[:, 0] >= current_score[rows]
+            moved = better & (inliers[:, 0] != mine).any(-1)
+            current[rows] = where_per_problem(better, refit, current[rows])
+            current_score[rows] = torch.where(better, score[:, 0], current_score[rows])
+            current_inliers[rows] = where_per_problem(better, inliers[:, 0], mine)
             if not bool(moved.any()):
-                break  # the same inliers give the same refit: every further one would repeat this one
+                break
+            refitting = torch.zeros_like(improved).index_fill_(0, rows[moved], True)
         best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
         trials[live] += num_samples
         ratio = torch.maximum(best_inliers.sum(-1).double() / valid_counts, useful_ratio)

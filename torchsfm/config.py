@@ -152,10 +152,10 @@ class FundamentalConfig:
     ``seven_point`` samples 7 correspondences (up to three F each) instead of 8. The RANSAC's LO
     refits (``ransac.local_refits``, 20 here) go on while a new best model's inliers move: from a
     minimal sample of noisy points that takes 3-8 refits at 30 % outliers and up to 31 at 60-70 %
-    (20 bound all but 2 of the 211 measured), and a model stopped after 3 kept a worse F — measured on 30 synthetic
-    scenes of 1000 matches, 0.5 px noise, per outlier share: the worst median epipolar error of
-    the true matches 0.176 → 0.085 px at 30 %, 0.426 → 0.254 px at 50 %, the median 0.100 → 0.072
-    px at 60 % (OpenCV USAC_MAGSAC: 0.097, 0.126 and 0.081 px).
+    (20 bound all but 2 of the 211 measured), and a model stopped after 3 kept a worse F.
+    Measured on 30 synthetic scenes of 1000 matches, 0.5 px noise, per outlier share: the worst
+    median epipolar error of the true matches 0.176 → 0.085 px at 30 %, 0.426 → 0.254 px at 50 %,
+    the median 0.100 → 0.072 px at 60 % (OpenCV USAC_MAGSAC: 0.097, 0.126 and 0.081 px).
     """
 
     ransac: RansacConfig = field(default_factory=lambda: RansacConfig(local_refits=20))

@@ -291,20 +291,27 @@ def test_hopkins155_subset_misclassification():
 
 @pytest.mark.parametrize("clip", ["Seq028_Clip02", "Seq038_Clip02"])
 def test_a_given_number_of_motions_keeps_the_settled_partition(shared_data, clip):
-    """KT3DMoSeg clips whose settled segmentation (number found) has the true number of motions:
-    given that number, the same partition comes back (seed 0), not the unsettled cut into that
-    many, which split the background there (measured: 47.1 % and 23.0 % misclassified; now 3.7 %
-    and 1.6 %)."""
+    """KT3DMoSeg clips whose settled segmentation (number found) has the true number of motions
+    at some seeds: at each such seed of 0-3, given that number, the same partition comes back,
+    not the unsettled cut into that many, which split the background there (measured: 47.1 % and
+    23.0 % misclassified; the settled partitions 1.6-12.3 %). Seq028_Clip02's settled number is
+    right at three of these seeds, Seq038_Clip02's at all four."""
     pytest.importorskip("scipy")
     from torchsfm.io.datasets import read_kt3dmoseg
 
     sequence = read_kt3dmoseg(shared_data / "kt3dmoseg_dev" / f"{clip}_Tracks")
     motions = int(sequence.labels.max()) + 1
-    found = segment_motions(sequence.tracks, sequence.visible, generator=torch.Generator().manual_seed(0))
-    given = segment_motions(sequence.tracks, sequence.visible, num_motions=motions, generator=torch.Generator().manual_seed(0))
-    assert found.num_motions == given.num_motions == motions
-    assert torch.equal(given.labels, found.labels)
-    assert misclassification(given.labels, sequence.labels) <= 0.05
+    settled = 0
+    for seed in range(4):
+        found = segment_motions(sequence.tracks, sequence.visible, generator=torch.Generator().manual_seed(seed))
+        if found.num_motions != motions:
+            continue
+        settled += 1
+        given = segment_motions(sequence.tracks, sequence.visible, num_motions=motions, generator=torch.Generator().manual_seed(seed))
+        assert given.num_motions == motions
+        assert torch.equal(given.labels, found.labels), seed
+        assert misclassification(given.labels, sequence.labels) <= 0.15, seed
+    assert settled >= 3
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -202,6 +202,22 @@ def test_fundamental_lo_climbs_until_a_refit_gains_no_inlier(outlier_ratio):
         assert int(again.sum()) <= int(found.inlier_mask.sum()), seed
 
 
+def test_a_record_minimal_model_is_polished_though_the_polished_best_scores_higher():
+    """F at 60 % outliers, 0.5 px noise, 40 scenes of 500 matches: the inliers found hold at least
+    85 % of the planted ones on all but 2 scenes. Polishing only a minimal model that beats the
+    polished best (Chum et al.), 10 of the 40 ended at a local optimum holding 43-82 % of them: a
+    good sample's minimal model scores below such an optimum before it is refined."""
+    stuck = []
+    for seed in range(40):
+        scene = synthetic_two_view(500, noise=0.5, outlier_ratio=0.6, seed=seed)
+        data = _data(scene).double()
+        found = ransac(FundamentalModel(data), data, FundamentalConfig().ransac, generator=torch.Generator().manual_seed(0))
+        kept = float((found.inlier_mask[0] & scene.is_inlier).sum() / scene.is_inlier.sum())
+        if kept < 0.85:
+            stuck.append((seed, kept))
+    assert len(stuck) <= 2, stuck
+
+
 def test_local_refits_run_on_the_problems_whose_inliers_moved():
     """One batch of a noise-free problem (its first refit finds the inliers it was fitted on) and
     a noisy one (its inliers move for several refits): after a round's first refit the refits

@@ -103,11 +103,20 @@ def ransac(
     ``initial_hypotheses`` up to ``hypotheses_per_round``), fits them, and scores them. With ``preemptive_points`` > 0 every
     hypothesis is first scored on a random subset of that many points and only the best
     ``preemptive_keep`` fraction is scored on all points (Nistér's preemptive scoring). When a
-    problem's best model improves, it is re-fitted on its inliers up to ``local_refits`` times
-    while the score does not drop (LO-RANSAC, Chum et al. 2003), so the adaptive stopping rule
-    sees the inlier ratio of a refined model; each refit runs on the problems whose inliers moved
-    at the last one only, and the refits end once none did (a refit of the same inliers would
-    repeat the last one). A problem stops drawing once its adaptive trial
+    round's best minimal model scores higher than every minimal model the problem drew before,
+    it is re-fitted on its inliers up to ``local_refits`` times while the score does not drop
+    (LO-RANSAC, Chum et al. 2003), and becomes the problem's best if it then scores higher, so the
+    adaptive stopping rule sees the inlier ratio of a refined model; each refit runs on the
+    problems whose inliers moved at the last one only, and the refits end once none did (a refit
+    of the same inliers would repeat the last one). Chum et al. polish a model that beats the
+    polished best: a minimal model of noisy points then has to beat a refined one unrefined, and
+    a refined local optimum holds out against the samples that would lead to the right model
+    (measured: F at 60 % outliers, 0.5 px noise, ended at 223-309 of ~380 true inliers on 13 of 90
+    runs, where nine in ten all-inlier samples score below such an optimum before refinement).
+    Records of the minimal models' scores are few (about the log of the rounds drawn), so
+    polishing them costs a few refits more (F, 30 synthetic scenes: 6.6 → 9.6 refits per problem
+    at 30 % outliers, 17 → 32 at 60 %; with them the 60 % runs off by more than 3 degrees in t
+    went from 13 to 3 of 90). A problem stops drawing once its adaptive trial
     count is reached (its inlier ratio taken as at least ``min_inliers`` / N: a model with fewer
     is of no use); later rounds run on the problems still drawing only (the model plug-in's
     ``restricted``), so a batch costs about what its problems cost one at a time, not its
@@ -171,6 +180,7 @@ def ransac(
 
     best_model: Tensor | None = None
     best_score = torch.full((B,), float("-inf"), dtype=torch.float64, device=device)
+    best_raw_score = best_score.clone()  # (B,) the best minimal (unpolished) model's score so far
     best_inliers = torch.zeros(B, N, dtype=torch.bool, device=device)
     trials = torch.zeros(B, dtype=torch.long, device=device)
     needed = torch.full((B,), config.max_trials, dtype=torch.long, device=device)
@@ -198,14 +208,14 @@ def ransac(
         step = max(1, ROUND_ELEMENTS // (models.shape[1] * N))
         blocks = [score_block(live_model, models, ok, live_data, live_valid, subset, slice(a, a + step)) for a in range(0, P, step)]
         chosen, round_score, chosen_inliers = (torch.cat(parts) for parts in zip(*blocks))
-        improved = round_score > best_score[live]  # (P,)
+        # a record minimal model is polished, then compared with the best (see the docstring)
+        record = round_score > best_raw_score[live]  # (P,)
+        best_raw_score[live] = torch.where(record, round_score.double(), best_raw_score[live])
         if best_model is None:  # problems that never draw keep zeros (they have fewer than s rows: no inliers)
             best_model = chosen.new_zeros(B, *chosen.shape[1:])
-        current = where_per_problem(improved, chosen, best_model[live])
-        current_score = torch.where(improved, round_score, best_score[live])
-        current_inliers = where_per_problem(improved, chosen_inliers, best_inliers[live])
-        refitting = improved  # (P,) the problems whose refits go on
-        for _ in range(config.local_refits if bool(improved.any()) else 0):
+        current, current_score, current_inliers = chosen, round_score, chosen_inliers
+        refitting = record  # (P,) the problems whose refits go on
+        for _ in range(config.local_refits if bool(record.any()) else 0):
             # only the problems whose inliers moved: the others' refit would repeat their last one
             rows = torch.nonzero(refitting).flatten()  # (R,)
             own = live_model if rows.numel() == P else live_model.restricted(rows)
@@ -219,8 +229,11 @@ def ransac(
             current_inliers[rows] = where_per_problem(better, inliers[:, 0], mine)
             if not bool(moved.any()):
                 break
-            refitting = torch.zeros_like(improved).index_fill_(0, rows[moved], True)
-        best_model[live], best_score[live], best_inliers[live] = current, current_score.double(), current_inliers
+            refitting = torch.zeros_like(record).index_fill_(0, rows[moved], True)
+        improved = record & (current_score > best_score[live])  # (P,)
+        best_model[live] = where_per_problem(improved, current, best_model[live])
+        best_inliers[live] = where_per_problem(improved, current_inliers, best_inliers[live])
+        best_score[live] = torch.where(improved, current_score.double(), best_score[live])
         trials[live] += num_samples
         ratio = torch.maximum(best_inliers.sum(-1).double() / valid_counts, useful_ratio)
         needed = required_trials(ratio, s, config.confidence, config.max_trials)

@@ -162,6 +162,12 @@ def _search_view(model: MapperState, sources: LowPassedImages, lenses: tuple[Ten
         return candidates, projected
     warp = _plane_warps(model, X, undistorted, view, views_of[reference])
     scale = warp.det().abs().sqrt()  # reference pixels per pixel of this view
+    # a patch whose footprint in its partner's image exceeds that image (a plane nearly edge-on,
+    # a point near the partner camera) has nothing to be compared with: not searched
+    fits = scale * (2 * half + 1) <= sources.shorter_sides[views_of[reference]]
+    candidates, projected, reference, warp, scale = candidates[fits], projected[fits], reference[fits], warp[fits], scale[fits]
+    if not candidates.numel():
+        return candidates, projected
     patches = torch.empty(candidates.numel(), (2 * half + 1) ** 2, dtype=image.dtype)
     partners = views_of[reference]
     for partner in partners.unique().tolist():
@@ -230,6 +236,7 @@ class LowPassedImages:
 
     def __init__(self, greys: list[Tensor]) -> None:
         self.greys = greys
+        self.shorter_sides = torch.tensor([min(grey.shape[-2:]) for grey in greys], dtype=torch.float64)  # (V,) pixels
         self.made: OrderedDict[tuple[int, int], Tensor] = OrderedDict()
         self.kept_bytes = 0
 

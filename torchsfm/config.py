@@ -72,9 +72,10 @@ class RansacConfig:
     fundamental matrix. ``confidence`` is p of eq. 3.3.7. ``hypotheses_per_round`` is how many
     minimal samples are drawn and scored as one batch before the adaptive stop is re-checked.
     Up to ``local_refits`` non-minimal fits on the inliers polish each minimal model that scores
-    higher than every one before it (LO-RANSAC; ours, 0 is the thesis' plain RANSAC). ``preemptive_points`` > 0 scores every hypothesis on
-    that many random points first and fully scores only the best ``preemptive_keep`` fraction
-    (ours, for speed; 0 scores everything on all points). ``min_inliers`` > 0 is the support
+    higher than every one before it (LO-RANSAC; ours, 0 is the thesis' plain RANSAC).
+    ``preemptive_points`` > 0 scores every hypothesis on that many random points first and fully
+    scores only the best ``preemptive_keep`` fraction (ours, for speed; 0 scores everything on
+    all points). ``min_inliers`` > 0 is the support
     below which a model is of no use to the caller (e.g. a resection the mapper would refuse):
     the adaptive count of eq. 3.3.7 takes the inlier ratio as at least ``min_inliers`` / N, so a
     problem stops once it has drawn the samples that find such a model at ``confidence``, even if

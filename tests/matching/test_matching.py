@@ -129,19 +129,34 @@ def test_strength_measure_is_that_of_its_definition(epsilon):
     assert_close(strength, _strength_by_definition(points1, points2, candidates, config), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize("rows, tiles_per_radius", [(1, 1), (7, 1), (128, 2), (50, 3), (100_000, 1)])
-def test_strength_measure_does_not_depend_on_how_the_rows_are_blocked(rows, tiles_per_radius, monkeypatch):
-    """Blocks of 1 to all rows, tiles of a third to a whole radius: the same SM bit for bit (a
-    row's neighbours are summed in candidate order whatever block holds it)."""
+@pytest.mark.parametrize("pairs, strips_per_radius", [(1, 1), (7, 1), (1 << 21, 4), (50, 3), (100_000, 2)])
+def test_strength_measure_does_not_depend_on_how_the_pairs_are_found(pairs, strips_per_radius, monkeypatch):
+    """Chunks of one row to all rows, strips a whole to a quarter radius high: the same SM bit for
+    bit (a row's neighbours are summed in (k, l) order however they were found)."""
     from torchsfm.matching import strength
 
     points1, points2, candidates, _ = _synthetic_candidates(seed=4)
     config = MatchingConfig(neighbourhood_radius=80)
     reference = strength_measure(points1, points2, candidates, config)
-    monkeypatch.setattr(strength, "_ROW_BLOCK", rows)
-    monkeypatch.setattr(strength, "_TILES_PER_RADIUS", tiles_per_radius)
+    monkeypatch.setattr(strength, "_CHUNK_PAIRS", pairs)
+    monkeypatch.setattr(strength, "_STRIPS_PER_RADIUS", strips_per_radius)
     assert torch.equal(strength_measure(points1, points2, candidates, config), reference)
     assert bool((reference > 0).any())
+
+
+def test_strength_measure_does_not_depend_on_the_candidates_order():
+    """The candidates shuffled (not row-major, as ncc_candidates gives them), SM is that of the
+    sorted set, shuffled alike; one candidate alone, or none near another, scores 0."""
+    points1, points2, candidates, _ = _synthetic_candidates(seed=6)
+    config = MatchingConfig(neighbourhood_radius=80)
+    reference = strength_measure(points1, points2, candidates, config)
+    shuffle = torch.randperm(reference.numel(), generator=torch.Generator().manual_seed(0))
+    shuffled = CandidateMatches(candidates.index1[shuffle], candidates.index2[shuffle], candidates.score[shuffle])
+    assert_close(strength_measure(points1, points2, shuffled, config), reference[shuffle], rtol=1e-12, atol=0)
+    alone = CandidateMatches(candidates.index1[:1], candidates.index2[:1], candidates.score[:1])
+    assert torch.equal(strength_measure(points1, points2, alone, config), torch.zeros(1, dtype=torch.float64))
+    far = MatchingConfig(neighbourhood_radius=1e-3)
+    assert torch.equal(strength_measure(points1, points2, candidates, far), torch.zeros_like(reference))
 
 
 def test_strength_measure_in_float32_agrees_with_float64_far_from_the_image_origin():

@@ -12,11 +12,13 @@ with the symmetry fix of §3.2.2.2.1, made exact: a neighbour pair (k, l) counts
 k's best and k is l's best. (The thesis keeps, among the k whose best is the same l, the largest;
 that removes the double counting but is not symmetric when a dropped k has another partner — the
 mutual-best rule gives the same SM whichever image comes first, which is what the fix is for, and
-agrees with the thesis' rule whenever the best partners are unique.) Candidate pairs are evaluated a
-block of spatially nearby rows at a time (tiles half a neighbourhood radius wide, taken in Z order)
-against the candidates in the surrounding tiles, and only the pairs within the radius whose
-distances are alike (δ > 0) are kept (a sparse list), so the cost grows with the candidates' local
-density, not with their number squared.
+agrees with the thesis' rule whenever the best partners are unique.) The candidates are sorted
+into horizontal strips a quarter radius high; each candidate is paired only with the later ones
+that lie over the disc's chord in its own strip and the strips below (every unordered pair once,
+δ and dist being symmetric), a flat list of pairs, and only the pairs within the radius in both
+images whose distances are alike (δ > 0) are kept; the two maxima of the symmetry fix are runs of
+that list sorted by (row, k) and by (row, l). The cost grows with the candidates' local density,
+not with their number squared.
 Relaxation then accepts matches iteratively: winner-take-all accepts every candidate that is the
 best of both its points; some-winners-take-all (default) accepts only those in the top α of both
 the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10).
@@ -32,17 +34,8 @@ from torch import Tensor
 from torchsfm.config import MatchingConfig
 from torchsfm.matching.ncc import CandidateMatches
 
-_ROW_BLOCK = 128
-_TILES_PER_RADIUS = 2  # Herz-Jesu-P8's 23 guided pairs: 112 M row x column entries with 1 (row-major, blocks of 256), 79 M with 2 in Z order
-
-
-def _z_order(tile: Tensor) -> Tensor:
-    """(M,) Morton keys of (M, 2) non-negative integer (x, y) tiles: the bits of x and y
-    interleaved, so that tiles close in the order are close in the plane."""
-    key = torch.zeros_like(tile[:, 0])
-    for bit in range(max(1, int(tile.max()).bit_length())):
-        key |= ((tile[:, 0] >> bit) & 1) << (2 * bit) | ((tile[:, 1] >> bit) & 1) << (2 * bit + 1)
-    return key
+_STRIPS_PER_RADIUS = 4  # neighbours are looked for in horizontal strips a quarter radius high
+_CHUNK_PAIRS = 1 << 21  # candidate pairs examined at once: memory bounded whatever the number of candidates
 
 
 def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatches,
@@ -55,58 +48,114 @@ def strength_measure(points1: Tensor, points2: Tensor, candidates: CandidateMatc
         config: neighbourhood radius and ε_r.
     """
     config = config or MatchingConfig()
-    i, j, c = candidates.index1, candidates.index2, candidates.score
-    M = i.numel()
-    strength = torch.zeros(M, dtype=points1.dtype, device=points1.device)
+    M, N1, N2 = candidates.index1.numel(), points1.shape[0], points2.shape[0]
     if M == 0:
-        return strength
-    # rows in blocks of nearby candidates; a block's columns are the candidates in its tiles and
-    # the tiles around them (tiles 1 / _TILES_PER_RADIUS radius wide: every neighbour lies within
-    # _TILES_PER_RADIUS tiles), not all M. The blocks follow the tiles in Z order, so that each
-    # covers a compact patch of tiles rather than a strip. A row's columns come in candidate order
-    # whatever the block, so its sum below is the same.
-    reach = _TILES_PER_RADIUS
-    tile = torch.div(points1[i] - points1[i].amin(0), config.neighbourhood_radius / reach, rounding_mode="floor").long()  # (M, 2)
-    order = torch.argsort(_z_order(tile), stable=True)
-    grid_shape = (int(tile[:, 1].max()) + 1 + 2 * reach, int(tile[:, 0].max()) + 1 + 2 * reach)  # reach tiles of margin on each side
-    around = torch.arange(2 * reach + 1, device=points1.device)
-    for start in range(0, M, _ROW_BLOCK):
-        rows = order[start:start + _ROW_BLOCK]
-        near = torch.zeros(grid_shape, dtype=torch.bool, device=points1.device)
-        near[tile[rows, 1, None, None] + around[:, None], tile[rows, 0, None, None] + around] = True  # each row's tile and those within reach (margin-shifted)
-        cols = torch.nonzero(near[tile[:, 1] + reach, tile[:, 0] + reach]).flatten()
-        ci, cj = i[cols], j[cols]
-        d1 = _distances(points1[i[rows]], points1[ci])  # (R, C): d(m1i, n1k) for every nearby candidate (k, l)
-        d2 = _distances(points2[j[rows]], points2[cj])  # and d(m2j, n2l)
+        return torch.zeros(M, dtype=points1.dtype, device=points1.device)
+    canonical = torch.argsort(candidates.index1 * N2 + candidates.index2, stable=True)  # row-major (k, l) order (the identity as ncc_candidates gives them)
+    i, j, c = (t.index_select(0, canonical) for t in (candidates.index1, candidates.index2, candidates.score))
+    row, col, delta, closeness = _alike_pairs(points1[i], points2[j], config.neighbourhood_radius, config.relative_distance_threshold)
+    # each pair counts both ways: row m with neighbour n scores c_n δ / (1 + dist), row n with neighbour m c_m δ / (1 + dist)
+    row, col = torch.cat([row, col]), torch.cat([col, row])
+    dtype = torch.int32 if M * max(M, N1, N2) <= torch.iinfo(torch.int32).max else torch.int64  # int32 keys sort twice as fast
+    row, col = row.to(dtype), col.to(dtype)
+    in_order = torch.argsort(row * M + col)  # by row, then in (k, l) order: a row's neighbours sharing k side by side
+    row, col, delta, closeness = (t.index_select(0, in_order) for t in (row, col, torch.cat([delta, delta]), torch.cat([closeness, closeness])))
+    value = c.index_select(0, col) * delta / closeness  # (E,)
+    best_of_k = _best_in_runs(value, row * N1 + i.index_select(0, col).to(dtype))
+    l_key = row * N2 + j.index_select(0, col).to(dtype)
+    by_l = torch.argsort(l_key)  # a row's neighbours sharing l side by side
+    best_of_l = torch.empty_like(value).index_copy_(0, by_l, _best_in_runs(value.index_select(0, by_l), l_key.index_select(0, by_l)))
+    counted = (value > 0) & (value == best_of_k) & (value == best_of_l)  # mutual best: the symmetry fix
+    strength = c * value.new_zeros(M).index_add_(0, row, torch.where(counted, value, 0.0))  # a row's neighbours summed in (k, l) order
+    return torch.empty_like(strength).index_copy_(0, canonical, strength)
+
+
+def _alike_pairs(first: Tensor, second: Tensor, radius: float, epsilon: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The pairs (m, n), m ≠ n, of candidates whose corners lie within ``radius`` of each other
+    in both images (``first``, ``second``: (M, 2) positions) at alike distances (r < ε_r), each
+    pair once: (E,) m, (E,) n, (E,) δ = exp(-r / ε_r) and (E,) 1 + dist."""
+    order, start, stop = _strip_ranges(first, radius)
+    # the candidates in strip order, each coordinate a column of its own (gathers from 1-D tensors are the fast ones)
+    x1, y1 = first.index_select(0, order).T.contiguous()
+    x2, y2 = second.index_select(0, order).T.contiguous()
+    found = []
+    for begin, end in _row_chunks((stop - start).sum(1)):
+        row, col = _enumerate(begin, start[begin:end], stop[begin:end])  # (P,), (P,): positions in strip order
+        d1 = _distances(x1, y1, row, col)  # d(m1i, n1k)
+        d2 = _distances(x2, y2, row, col)  # d(m2j, n2l)
         dist = 0.5 * (d1 + d2)
         # r is 2 where the neighbour shares one corner with the row (one distance 0: ε_r <= 2 drops it)
-        # and NaN where it shares both (the row itself: 0 / 0, never below ε_r)
+        # and NaN where it shares both (the same corners twice: 0 / 0, never below ε_r)
         r = (d1 - d2).abs_().div_(dist)
-        alike = (torch.maximum(d1, d2) < config.neighbourhood_radius) & (r < config.relative_distance_threshold)  # δ > 0: the E that count
-        r_index, c_index = torch.nonzero(alike, as_tuple=True)
-        r, dist = r[r_index, c_index], dist[r_index, c_index]
-        value = c[cols[c_index]] * torch.exp(-r / config.relative_distance_threshold) / (1 + dist)  # (E,)
-        R = rows.numel()
-        points_k, local_k = torch.unique(ci, return_inverse=True)  # the columns name few corners of each image:
-        points_l, local_l = torch.unique(cj, return_inverse=True)  # tables over those, not over all N1, N2
-        k_slot = r_index * points_k.numel() + local_k[c_index]  # (E,): entry (row, k) of a flattened (R, K) table
-        l_slot = r_index * points_l.numel() + local_l[c_index]  # (E,): entry (row, l) of a flattened (R, L) table
-        best_of_k = value.new_zeros(R * points_k.numel()).scatter_reduce(0, k_slot, value, "amax")
-        best_of_l = value.new_zeros(R * points_l.numel()).scatter_reduce(0, l_slot, value, "amax")
-        counted = (value > 0) & (value == best_of_k[k_slot]) & (value == best_of_l[l_slot])  # mutual best: the symmetry fix
-        total = value.new_zeros(R).index_add_(0, r_index, torch.where(counted, value, 0.0))
-        strength[rows] = c[rows] * total
-    return strength
+        alike = torch.nonzero((torch.maximum(d1, d2) < radius) & (r < epsilon)).flatten()  # δ > 0: the pairs that count
+        row, col, r, dist = (t.index_select(0, alike) for t in (row, col, r, dist))
+        found.append((order.index_select(0, row), order.index_select(0, col), torch.exp(-r / epsilon), 1 + dist))
+    return tuple(torch.cat(part) for part in zip(*found))
 
 
-def _distances(a: Tensor, b: Tensor) -> Tensor:
-    """(R, C) Euclidean distances between the points a (R, 2) and b (C, 2), from the coordinates'
-    differences: through |a|² + |b|² - 2a·b (``cdist``'s default) float32 loses the digits of near
-    neighbours, and ``cdist`` from the differences takes 3x as long. (The coordinates are made
-    contiguous first: a broadcast difference of strided columns takes 3x as long.)"""
-    (ax, ay), (bx, by) = a.T.contiguous(), b.T.contiguous()
-    dx = ax[:, None] - bx
-    dy = ay[:, None] - by
+def _best_in_runs(value: Tensor, key: Tensor) -> Tensor:
+    """(E,) for each entry the largest of 0 and the ``value`` (E,) of the run of consecutive
+    entries with equal ``key`` (E,) that it belongs to."""
+    change = torch.ones_like(key, dtype=torch.bool)
+    torch.ne(key[1:], key[:-1], out=change[1:])
+    run = torch.cumsum(change, 0) - 1
+    return value.new_zeros(value.numel()).scatter_reduce_(0, run, value, "amax").index_select(0, run)
+
+
+def _strip_ranges(points: Tensor, radius: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Where to look for the neighbours of (M, 2) points, each pair once: the points sorted by
+    horizontal strip (1 / ``_STRIPS_PER_RADIUS`` radius high), then by x: ``order`` (M,); and for
+    every point of that order and each of the S = ``_STRIPS_PER_RADIUS`` + 1 strips from its own
+    down to a radius below, the positions [``start``, ``stop``) (M, S) in that order of the points
+    after it whose x lies within the disc's chord over the strip. Every later point closer than
+    ``radius`` is among them (with a few farther ones)."""
+    reach = _STRIPS_PER_RADIUS
+    height = radius / reach
+    x, y = (points.double() - points.double().amin(0)).unbind(-1)
+    strip = torch.div(y, height, rounding_mode="floor")
+    span = float(x.max()) + 2 * radius + 1  # a strip's keys, x within a radius of any point's, stay below the next strip's
+    key = strip * span + x
+    order = torch.argsort(key)
+    key, x, y, strip = key[order], x[order], y[order], strip[order]
+    steps = torch.arange(reach + 1, dtype=x.dtype, device=x.device)  # (S,)
+    gap = ((strip[:, None] + steps) * height - y[:, None]).clamp_min(0) * (steps > 0)  # (M, S): from the point to the strip's nearest y
+    chord = (radius ** 2 - gap ** 2).clamp_min(0).sqrt() * (1 + 1e-6) + 1e-6  # half its width, generous by a rounding error
+    centre = (strip[:, None] + steps) * span + x[:, None]
+    start = torch.searchsorted(key, centre - chord)
+    start[:, 0] = torch.maximum(start[:, 0], torch.arange(1, key.numel() + 1, device=key.device))  # in its own strip: the points after it
+    stop = torch.maximum(torch.searchsorted(key, centre + chord, right=True), start)
+    return order, start, stop
+
+
+def _row_chunks(counts: Tensor) -> list[tuple[int, int]]:
+    """Consecutive rows [first, last) whose ``counts`` (M,) sum to at most ``_CHUNK_PAIRS``
+    (one row at least)."""
+    ends = torch.cumsum(counts, 0)
+    chunks, first = [], 0
+    while first < counts.numel():
+        before = int(ends[first - 1]) if first else 0
+        last = max(int(torch.searchsorted(ends, before + _CHUNK_PAIRS, right=True)), first + 1)
+        chunks.append((first, last))
+        first = last
+    return chunks
+
+
+def _enumerate(first: int, start: Tensor, stop: Tensor) -> tuple[Tensor, Tensor]:
+    """The (row, column) pairs (P,), (P,) of rows ``first``, ``first`` + 1, ... whose columns
+    are the positions [``start``, ``stop``) (R, S) of each row's S slices, row by row."""
+    lengths = (stop - start).flatten()
+    slot = torch.repeat_interleave(lengths)  # (P,): each pair's slice
+    shift = start.flatten() - (torch.cumsum(lengths, 0) - lengths)  # a slice's first position less the pairs before it
+    row = torch.repeat_interleave(lengths.view(start.shape).sum(1)).add_(first)
+    return row, torch.arange(slot.numel(), device=start.device).add_(shift.index_select(0, slot))
+
+
+def _distances(x: Tensor, y: Tensor, row: Tensor, col: Tensor) -> Tensor:
+    """(P,) Euclidean distances between the points (``x``, ``y``) (M,), (M,) numbered ``row``
+    and ``col`` (P,), from the coordinates' differences: through |a|² + |b|² - 2a·b float32 loses
+    the digits of near neighbours."""
+    dx = x.index_select(0, row) - x.index_select(0, col)
+    dy = y.index_select(0, row) - y.index_select(0, col)
     return dx.mul_(dx).addcmul_(dy, dy).sqrt_()
 
 

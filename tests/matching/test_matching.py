@@ -264,12 +264,38 @@ def test_the_pipeline_matches_a_set_of_small_images_with_shrunk_radii(monkeypatc
 
     def recording(image1, image2, points1, points2, config=None, predicted1=None, warp1=None):
         seen.append(config)
-        return match_corners(image1, image2, points1, points2, config, predicted1, warp1)
+        return ncc_candidates(image1, image2, points1, points2, config, predicted1, warp1)
 
-    monkeypatch.setattr(view_pairs, "match_corners", recording)
+    monkeypatch.setattr(view_pairs, "ncc_candidates", recording)
     greys = [(_textured(seed, (120, 160)) * 255).to(torch.uint8) for seed in (0, 1)]
     corners = torch.rand(40, 2, generator=torch.Generator().manual_seed(2)) * torch.tensor([130.0, 90.0]) + 15
     view_pairs.guided_matches(greys, [corners, corners], {(0, 1): None}, Config(), lambda message: None)
     expected = Config().matching.for_images((120, 160))
     assert [config.search_radius for config in seen] == [pytest.approx(expected.search_radius)]
     assert expected.search_radius < Config().matching.search_radius
+
+
+@pytest.mark.parametrize("mode, alpha", [("some_winners", 0.6), ("some_winners", 0.1), ("winner_take_all", 0.6)])
+def test_relaxation_of_many_problems_at_once_is_that_of_each_alone(mode, alpha):
+    """Problems of different sizes (one with no candidate), SM or random scores, relaxed in one
+    loop: each gets the matches of its own call, bit for bit — the top fractions taken per
+    problem, and at α = 0.1 the fallback (the two top tables share no entry: the strongest)
+    taken per problem too."""
+    from torchsfm.matching.strength import relaxation_batch
+
+    config = MatchingConfig(neighbourhood_radius=80, relaxation=mode, alpha=alpha)
+    generator = torch.Generator().manual_seed(7)
+    problems = []
+    for seed, n in [(0, 60), (1, 25), (2, 90)]:
+        points1, points2, candidates, _ = _synthetic_candidates(seed=seed, n=n)
+        problems.append((candidates, strength_measure(points1, points2, candidates, config), (n, n)))
+    candidates = problems[0][0]
+    problems.append((candidates, torch.rand(candidates.index1.numel(), generator=generator, dtype=torch.float64), (60, 60)))
+    empty = torch.zeros(0, dtype=torch.long)
+    problems.insert(1, (CandidateMatches(empty, empty, torch.zeros(0, dtype=torch.float64)), torch.zeros(0, dtype=torch.float64), (5, 7)))
+    together = relaxation_batch(*(list(part) for part in zip(*problems)), config)
+    assert len(together) == len(problems) and together[1][0].numel() == 0
+    for (index1, index2), problem in zip(together, problems):
+        alone = relaxation(*problem, config)
+        assert torch.equal(index1, alone[0]) and torch.equal(index2, alone[1])
+    assert sum(index1.numel() for index1, _ in together) > 150

@@ -43,9 +43,15 @@ def match_candidates(points1: Tensor, points2: Tensor, candidates: CandidateMatc
     """One-to-one matches of corners (N1, 2), (N2, 2) from a candidate set: the strength measure
     (or NCC alone) and relaxation (Algorithm 3.2.2, steps 2-3)."""
     config = config or MatchingConfig()
-    strength = strength_measure(points1, points2, candidates, config) if config.strength == "sm" else candidates.score
+    strength = ranking_score(points1, points2, candidates, config)
     index1, index2 = relaxation(candidates, strength, (points1.shape[0], points2.shape[0]), config)
     return PutativeMatches(index1=index1, index2=index2, candidates=candidates, strength=strength)
+
+
+def ranking_score(points1: Tensor, points2: Tensor, candidates: CandidateMatches, config: MatchingConfig) -> Tensor:
+    """(M,) what relaxation ranks the candidates of corners (N1, 2), (N2, 2) by: the strength
+    measure, or NCC alone (``config.strength``)."""
+    return strength_measure(points1, points2, candidates, config) if config.strength == "sm" else candidates.score
 
 
 class PutativeMatcher(nn.Module):

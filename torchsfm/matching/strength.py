@@ -27,6 +27,7 @@ the SM table and the ambiguity table (U = 1 - SM⁽²⁾/SM⁽¹⁾, eq. 3.2.10)
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -173,38 +174,73 @@ def relaxation(candidates: CandidateMatches, strength: Tensor, num_points: tuple
     Returns:
         The accepted matches as (index1, index2) int64 tensors (one-to-one).
     """
+    return relaxation_batch([candidates], [strength], [num_points], config)[0]
+
+
+def relaxation_batch(candidates: Sequence[CandidateMatches], strengths: Sequence[Tensor], num_points: Sequence[tuple[int, int]],
+                     config: MatchingConfig | None = None) -> list[tuple[Tensor, Tensor]]:
+    """:func:`relaxation` of P independent problems in one loop: the p-th of ``candidates``,
+    ``strengths`` (M_p,) and ``num_points`` (N1_p, N2_p). Their candidates lie side by side, the
+    corners of each problem numbered after those of the problems before it (no two problems share
+    a corner), and the top fractions are taken per problem: the same matches as P calls, for the
+    operations of one (many view pairs' relaxations cost about one's)."""
     config = config or MatchingConfig()
-    i, j = candidates.index1, candidates.index2
-    N1, N2 = num_points
+    P, device = len(strengths), strengths[0].device
+    sizes = [s.numel() for s in strengths]
+    problem = torch.repeat_interleave(torch.arange(P, device=device), torch.tensor(sizes, device=device))  # (M,)
+    corners = torch.tensor(num_points, dtype=torch.long, device=device).reshape(P, 2)
+    first_corner = torch.cumsum(corners, 0) - corners  # (P, 2): each problem's corners numbered from there
+    i = torch.cat([c.index1 for c in candidates]) + first_corner[problem, 0]
+    j = torch.cat([c.index2 for c in candidates]) + first_corner[problem, 1]
+    strength = torch.cat(strengths)
+    N1, N2 = (int(n) for n in corners.sum(0))
     active = torch.nonzero(strength > config.strength_threshold)[:, 0]  # the candidates still in play
     accepted = torch.zeros_like(strength, dtype=torch.bool)
     for _ in range(config.max_relaxation_iterations):
-        ai, aj, score = i[active], j[active], strength[active]
+        ai, aj, score, group = i[active], j[active], strength[active], problem[active]
         best1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, ai, score, "amax")
         best2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, aj, score, "amax")
-        potential = (score == best1[ai]) & (score == best2[aj])
+        first1, first2 = score == best1[ai], score == best2[aj]
+        potential = first1 & first2
         if not bool(potential.any()):
             break
         if config.relaxation == "some_winners":
-            second1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, ai, torch.where(score == best1[ai], float("-inf"), score), "amax")
-            second2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, aj, torch.where(score == best2[aj], float("-inf"), score), "amax")
+            second1 = score.new_full((N1,), float("-inf")).scatter_reduce(0, ai, torch.where(first1, float("-inf"), score), "amax")
+            second2 = score.new_full((N2,), float("-inf")).scatter_reduce(0, aj, torch.where(first2, float("-inf"), score), "amax")
             runner_up = torch.maximum(second1[ai], second2[aj]).clamp_min(0.0)
             ambiguity = 1 - runner_up / score.clamp_min(1e-30)  # eq. 3.2.10
-            selected = potential & _in_top_fraction(score, potential, config.alpha) & _in_top_fraction(ambiguity, potential, config.alpha)
-            if not bool(selected.any()):  # the two tables share no top entry: take the strongest
-                selected = potential & (score == score[potential].max())
+            selected = potential & _in_top_fraction(score, potential, config.alpha, group, P) \
+                & _in_top_fraction(ambiguity, potential, config.alpha, group, P)
+            selected |= _strongest_where_none(score, potential, selected, group, P)
         else:
             selected = potential
         accepted[active[selected]] = True
-        used1 = torch.zeros(N1, dtype=torch.bool, device=i.device).index_fill_(0, ai[selected], True)
-        used2 = torch.zeros(N2, dtype=torch.bool, device=j.device).index_fill_(0, aj[selected], True)
+        used1 = torch.zeros(N1, dtype=torch.bool, device=device).index_fill_(0, ai[selected], True)
+        used2 = torch.zeros(N2, dtype=torch.bool, device=device).index_fill_(0, aj[selected], True)
         active = active[~used1[ai] & ~used2[aj]]
-    return i[accepted], j[accepted]
+    return [(c.index1[taken], c.index2[taken]) for c, taken in zip(candidates, torch.split(accepted, sizes))]
 
 
-def _in_top_fraction(values: Tensor, mask: Tensor, fraction: float) -> Tensor:
-    """Entries of ``mask`` whose value is within the top ceil(fraction × count) of the masked values."""
-    count = int(mask.sum())
-    keep = max(1, math.ceil(fraction * count))
-    threshold = torch.topk(values[mask], keep).values[-1]
-    return mask & (values >= threshold)
+def _in_top_fraction(values: Tensor, mask: Tensor, fraction: float, group: Tensor, groups: int) -> Tensor:
+    """Entries of ``mask`` whose value is within the top ceil(fraction × count) of the masked
+    values of their ``group`` (one of ``groups``)."""
+    if groups == 1:
+        keep = max(1, math.ceil(fraction * int(mask.sum())))
+        return mask & (values >= torch.topk(values[mask], keep).values[-1])
+    masked, owner = values[mask], group[mask]
+    count = torch.bincount(owner, minlength=groups)
+    keep = torch.ceil(fraction * count.double()).long().clamp_min(1)
+    by_value = torch.argsort(masked, descending=True, stable=True)
+    ranked = masked[by_value[torch.argsort(owner[by_value], stable=True)]]  # by group, then largest first
+    threshold = ranked[(torch.cumsum(count, 0) - count + keep - 1).clamp(0, max(ranked.numel() - 1, 0))]  # (groups,); unused where count is 0
+    return mask & (values >= threshold[group])
+
+
+def _strongest_where_none(score: Tensor, potential: Tensor, selected: Tensor, group: Tensor, groups: int) -> Tensor:
+    """Where a group's two top tables share no entry (nothing ``selected``), its strongest
+    ``potential`` entries: they are taken instead."""
+    if groups == 1:
+        return potential & (score == score[potential].max()) if not bool(selected.any()) else torch.zeros_like(selected)
+    chosen = torch.zeros(groups, dtype=torch.bool, device=score.device).index_fill_(0, group[selected], True)
+    strongest = score.new_full((groups,), float("-inf")).scatter_reduce(0, group, torch.where(potential, score, float("-inf")), "amax")
+    return potential & ~chosen[group] & (score == strongest[group])

@@ -19,8 +19,9 @@ from torchsfm.images import same_size_batches, stacked_masks, to_unit_float
 from torchsfm.geometry.fundamental import sampson_error
 from torchsfm.geometry.homography import homography_jacobian
 from torchsfm.geometry.self_calibration import focal_from_fundamentals, intrinsics
-from torchsfm.matching.matcher import match_candidates, match_corners
-from torchsfm.matching.ncc import chance_equivalent_threshold, ncc_table, select_candidates
+from torchsfm.matching.matcher import match_candidates, ranking_score
+from torchsfm.matching.ncc import CandidateMatches, chance_equivalent_threshold, ncc_candidates, ncc_table, select_candidates
+from torchsfm.matching.strength import relaxation_batch
 from torchsfm.moving.imor import MovingObjectRejection
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
 from torchsfm.robust.models import HomographyModel
@@ -34,6 +35,7 @@ from torchsfm.threads import map_in_threads, one_at_a_time
 DETECTION_CHUNK = 8  # views per batched Harris call
 MAX_PATCH_SCALE = 3.0  # a patch warp scales by at most this (or its inverse)
 VERIFY_BATCH = 32  # view pairs per batched verification call
+MATCH_BATCH = 32  # view pairs whose relaxations run as one (their candidates held at once)
 FIXED_SIGNIFICANCE = 1e-3  # chance that noise leaves a still point's two detections as close as a match fixed in the image
 
 
@@ -93,23 +95,38 @@ def guided_matches(greys: list[Tensor], raw: list[Tensor], homographies: dict[tu
     ``other_motions`` (moving bodies to be reconstructed), a pair matched at the prediction is
     matched in the plain disc too, and the corners that left unmatched there join: an object
     moving on its own is not where the scene's homography puts it.
-    Pairs with fewer than ``min_pair_inliers`` matches are left out. The pairs are matched side by
-    side (:func:`~torchsfm.threads.map_in_threads`: the same matches as one after another)."""
+    Pairs with fewer than ``min_pair_inliers`` matches are left out. The pairs' candidates are
+    found side by side (:func:`~torchsfm.threads.map_in_threads`) and relaxed together,
+    ``MATCH_BATCH`` pairs in one loop (:func:`~torchsfm.matching.strength.relaxation_batch`): the
+    same matches as one pair after another."""
 
     report = one_at_a_time(report)  # called from the matching threads
     config = replace(config, matching=config.matching.for_images(*(grey.shape for grey in greys)))
 
-    def match(pair: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    def scored(pair: tuple[int, int]) -> _PairCandidates:
         (i, j), H = pair, homographies[pair]
         report(f"matching views {i} and {j}")
         if H is not None and config.pairs.warp_patches and second_sees_larger(H, raw[i]):
-            index2, index1 = _match_along(greys, raw, j, i, torch.linalg.inv(H), config, other_motions)
-        else:
-            index1, index2 = _match_along(greys, raw, i, j, H, config, other_motions)
-        return index1, index2
+            return _candidates_along(greys, raw, j, i, torch.linalg.inv(H), config, other_motions)
+        return _candidates_along(greys, raw, i, j, H, config, other_motions)
 
-    matched = zip(homographies, map_in_threads(match, homographies))
-    return {pair: indices for pair, indices in matched if indices[0].numel() >= config.reconstruction.min_pair_inliers}
+    matches = {}
+    pairs = list(homographies)
+    for start in range(0, len(pairs), MATCH_BATCH):
+        batch = pairs[start:start + MATCH_BATCH]
+        found = map_in_threads(scored, batch)
+        relaxed = iter(relaxation_batch(*zip(*(problem for pair in found for problem in pair.problems)), config.matching))
+        for (i, j), pair in zip(batch, found):
+            index1, index2 = next(relaxed)
+            if len(pair.problems) == 2:  # the plain disc's matches whose corners the guided ones left free join
+                plain1, plain2 = next(relaxed)
+                free = ~torch.isin(plain1, index1) & ~torch.isin(plain2, index2)
+                index1, index2 = torch.cat([index1, plain1[free]]), torch.cat([index2, plain2[free]])
+            if pair.views != (i, j):
+                index1, index2 = index2, index1
+            if index1.numel() >= config.reconstruction.min_pair_inliers:
+                matches[(i, j)] = (index1, index2)
+    return matches
 
 
 def second_sees_larger(H: Tensor, points: Tensor) -> bool:
@@ -120,10 +137,20 @@ def second_sees_larger(H: Tensor, points: Tensor) -> bool:
     return float(torch.linalg.det(homography_jacobian(H, points.double())).median()) > 1
 
 
-def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config,
-                 other_motions: bool) -> tuple[Tensor, Tensor]:
-    """Matched corner indices of views i and j, guided by the homography H (3, 3) from i to j
-    (or None) as :func:`guided_matches` says."""
+@dataclass
+class _PairCandidates:
+    """The candidates of a view pair as matched: ``views`` (i, j), view i's patches the warped
+    ones; ``problems``: (candidates, ranking score, (N_i, N_j) corners) at the homography's
+    prediction, and in the plain disc where that is matched too: what relaxation takes."""
+
+    views: tuple[int, int]
+    problems: list[tuple[CandidateMatches, Tensor, tuple[int, int]]]
+
+
+def _candidates_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tensor | None, config: Config,
+                      other_motions: bool) -> _PairCandidates:
+    """The scored candidates of views i and j, guided by the homography H (3, 3) from i to j (or
+    None) as :func:`guided_matches` says."""
     predicted = warp = None
     if H is not None:
         moved = from_homogeneous(to_homogeneous(raw[i].double()) @ H.T)
@@ -132,13 +159,12 @@ def _match_along(greys: list[Tensor], raw: list[Tensor], i: int, j: int, H: Tens
         if config.pairs.warp_patches:
             warp = patch_warps(H, raw[i].double())
     image1, image2 = to_unit_float(greys[i]), to_unit_float(greys[j])
-    matches = match_corners(image1, image2, raw[i], raw[j], config.matching, predicted, warp)
-    index1, index2 = matches.index1, matches.index2
-    if other_motions and predicted is not None:
-        plain = match_corners(image1, image2, raw[i], raw[j], config.matching)
-        free = ~torch.isin(plain.index1, index1) & ~torch.isin(plain.index2, index2)
-        index1, index2 = torch.cat([index1, plain.index1[free]]), torch.cat([index2, plain.index2[free]])
-    return index1, index2
+    discs = [(predicted, warp)] + ([(None, None)] if other_motions and predicted is not None else [])
+    problems = []
+    for centres, patch_warp in discs:
+        candidates = ncc_candidates(image1, image2, raw[i], raw[j], config.matching, centres, patch_warp)
+        problems.append((candidates, ranking_score(raw[i], raw[j], candidates, config.matching), (raw[i].shape[0], raw[j].shape[0])))
+    return _PairCandidates((i, j), problems)
 
 
 def epipolar_matches(greys: list[Tensor], raw: list[Tensor], corners: list[Tensor], pairs: dict[tuple[int, int], PairMatches],

@@ -299,3 +299,21 @@ def test_relaxation_of_many_problems_at_once_is_that_of_each_alone(mode, alpha):
         alone = relaxation(*problem, config)
         assert torch.equal(index1, alone[0]) and torch.equal(index2, alone[1])
     assert sum(index1.numel() for index1, _ in together) > 150
+
+
+def test_top_fractions_are_taken_per_problem():
+    """The batched relaxation's top-α selection: each problem's entries against its own
+    masked values only — one problem's values ten times another's change nothing — and a
+    problem with nothing masked selects nothing."""
+    from torchsfm.matching.strength import _in_top_fraction
+
+    generator = torch.Generator().manual_seed(8)
+    group = torch.randint(0, 3, (200,), generator=generator)
+    values = torch.rand(200, generator=generator, dtype=torch.float64) * torch.tensor([1.0, 10.0, 1.0], dtype=torch.float64)[group]
+    mask = (torch.rand(200, generator=generator) < 0.7) & (group != 2)
+    together = _in_top_fraction(values, mask, 0.6, group, 4)
+    assert not bool(together[group == 2].any())
+    for g in (0, 1):
+        mine = group == g
+        alone = _in_top_fraction(values[mine], mask[mine], 0.6, torch.zeros(int(mine.sum()), dtype=torch.long), 1)
+        assert torch.equal(together[mine], alone) and bool(alone.any())

@@ -240,7 +240,9 @@ def _strongest_where_none(score: Tensor, potential: Tensor, selected: Tensor, gr
     """Where a group's two top tables share no entry (nothing ``selected``), its strongest
     ``potential`` entries: they are taken instead."""
     if groups == 1:
-        return potential & (score == score[potential].max()) if not bool(selected.any()) else torch.zeros_like(selected)
+        if bool(selected.any()):
+            return torch.zeros_like(selected)
+        return potential & (score == score[potential].max())
     chosen = torch.zeros(groups, dtype=torch.bool, device=score.device).index_fill_(0, group[selected], True)
     strongest = score.new_full((groups,), float("-inf")).scatter_reduce(0, group, torch.where(potential, score, float("-inf")), "amax")
     return potential & ~chosen[group] & (score == strongest[group])

@@ -404,7 +404,10 @@ class PairsConfig:
     ``similarity`` (each view's ``neighbours`` best partners by the coarse score and the pairs of
     the sequential window, those with ``min_score`` coarse matches and as many inliers of a
     coarse homography; a view left with none keeps its best partners), or ``auto`` (similarity,
-    over every pair up to ``exhaustive_up_to`` views). Coarse matching: images reduced to about
+    over every pair up to ``exhaustive_up_to`` views). ``second_links`` (those two modes): a
+    chosen pair that alone joins two parts of the chosen pairs' graph gets a second pair across
+    the same cut, the considered one with the most coarse homography inliers
+    (:func:`torchsfm.sfm.pairs.second_links`). Coarse matching: images reduced to about
     ``coarse_size`` px on the long side, ``coarse_corners`` Harris corners, NCC on
     (2 ``patch_half_size`` + 1)² patches, mutual best above ``ncc_threshold``. ``guided``: a
     homography fitted to the coarse matches (``homography_threshold`` px, at least ``min_score``
@@ -428,6 +431,7 @@ class PairsConfig:
     exhaustive_up_to: int = 8
     neighbours: int = 4
     min_score: int = 12
+    second_links: bool = True
     coarse_size: int = 320
     coarse_corners: int = 300
     patch_half_size: int = 4

@@ -7,8 +7,8 @@ import torch
 
 from torchsfm.config import PairsConfig
 from torchsfm.images import read_image, to_grey
-from torchsfm.sfm.pairs import (coarse_features, coarse_homographies, pair_scores, pairs_to_match, reduction_factors, select_pairs,
-                                turned_homographies, view_groups)
+from torchsfm.sfm.pairs import (coarse_features, coarse_homographies, pair_scores, pairs_to_match, reduction_factors, second_links,
+                                select_pairs, single_links, turned_homographies, view_groups)
 from torchsfm.actions import SAMPLE as BUNDLED_FOUNTAIN
 
 
@@ -178,6 +178,59 @@ def test_a_tilted_view_gets_its_homography_from_patches_turned_between_quarter_t
 def test_view_groups_join_views_through_others():
     assert view_groups([(0, 1), (2, 3), (1, 4)], 6) == [0, 0, 2, 2, 0, 5]
     assert view_groups([], 2) == [0, 1]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_single_links_are_the_pairs_whose_removal_splits_the_graph(seed):
+    """Random view graphs (several parts, chains, cycles): a pair is reported iff removing it
+    leaves more groups (brute force with :func:`view_groups`), and its side is the group of one
+    of its ends after the removal."""
+    generator = torch.Generator().manual_seed(seed)
+    V = 14
+    candidates = [(i, j) for i in range(V) for j in range(i + 1, V)]
+    keep = torch.rand(len(candidates), generator=generator) < 0.12 + 0.04 * seed
+    pairs = [pair for pair, kept in zip(candidates, keep.tolist()) if kept]
+    found = dict(single_links(pairs, V))
+    groups = len(set(view_groups(pairs, V)))
+    for pair in pairs:
+        without = view_groups([other for other in pairs if other != pair], V)
+        assert (pair in found) == (len(set(without)) > groups)
+        if pair in found:
+            side = torch.tensor([without[v] == without[pair[1]] for v in range(V)])
+            assert torch.equal(found[pair], side) or torch.equal(found[pair], torch.tensor([without[v] == without[pair[0]] for v in range(V)]))
+    assert len(found) == len(single_links(pairs, V))
+
+
+def test_a_chain_of_many_views_is_searched_without_recursion():
+    chain = [(v, v + 1) for v in range(3000)]
+    assert [pair for pair, _ in single_links(chain, 3001)] == chain[::-1]
+    assert single_links(chain + [(0, 3000)], 3001) == []
+
+
+def test_a_pair_that_alone_joins_two_parts_gets_a_second_pair_across_the_cut():
+    """Views 0-2 and 3-5 joined by 2-3 alone: of the considered pairs across that cut with
+    ``min_score`` coarse matches, the one with most coarse homography inliers is added (a tie
+    goes to the higher score); a pair with fewer coarse matches, one within a part and one to
+    another group of views are not; a graph without such a pair gets nothing."""
+    chosen = [(0, 1), (0, 2), (1, 2), (2, 3), (3, 4), (3, 5), (4, 5), (6, 7)]
+    extra = {(1, 3): (9, 30), (2, 4): (11, 20), (0, 5): (11, 40), (1, 4): (30, 5), (0, 4): (2, 15), (2, 6): (40, 40), (4, 7): (40, 40)}
+    considered = chosen + list(extra)
+    inliers = {**dict.fromkeys(chosen, 20), **{pair: count for pair, (count, _) in extra.items()}}
+    scores = torch.zeros(8, 8, dtype=torch.long)
+    for pair in chosen:
+        scores[pair] = 50
+    for pair, (_, score) in extra.items():
+        scores[pair] = score
+    config = PairsConfig(min_score=12)
+    assert second_links(chosen, considered, scores, inliers, config, 8) == [(0, 5)]
+    assert second_links(chosen, considered, scores, {**inliers, (1, 3): 12}, config, 8) == [(1, 3)]
+    assert second_links(chosen + [(1, 3)], considered, scores, inliers, config, 8) == []
+    assert second_links(chosen, chosen, scores, inliers, config, 8) == []
+    # a single view hanging on one pair (view 0 on 0-1 alone) gets a second too
+    hanging = [(0, 1), (1, 2), (2, 3), (1, 3)]
+    assert [pair for pair, _ in single_links(hanging, 4)] == [(0, 1)]
+    scores[0, 2] = 50
+    assert second_links(hanging, hanging + [(0, 2)], scores, {**inliers, (0, 2): 30}, config, 4) == [(0, 2)]
 
 
 def test_a_tilted_view_is_matched_at_pair_selection():

@@ -12,7 +12,10 @@ Pair selection (``pairs.mode``): ``sequential`` — (i, i + d) for d = 1 .. ``wi
 ``exhaustive`` — every pair; ``similarity`` — each view's ``neighbours`` best-scoring partners
 and the pairs of the sequential window, where the pair's coarse homography holds (so a shuffled
 set wastes no time on its file neighbours, nor a set on views that share nothing); ``auto`` —
-similarity, over every pair up to ``exhaustive_up_to`` views.
+similarity, over every pair up to ``exhaustive_up_to`` views. In the last two, a chosen pair
+that alone joins two parts of the chosen pairs' graph (a bridge) gets a second pair across the
+same cut, the considered one with the most coarse homography inliers (:func:`second_links`),
+even if its homography holds on too few.
 """
 
 from __future__ import annotations
@@ -218,7 +221,74 @@ def pairs_to_match(greys: list[Tensor], config: PairsConfig, generator: torch.Ge
         if between:
             turned = turned_homographies(features, between, config, side_generator(generator))
             chosen.update({pair: H if guided else None for pair, H in turned.items()})
+        if config.second_links:
+            second = second_links(list(chosen), considered, scores, inliers, config, len(greys))
+            chosen.update({pair: homographies.get(pair) if guided else None for pair in second})
     return dict(sorted(chosen.items()))
+
+
+def single_links(pairs: list[tuple[int, int]], num_views: int) -> list[tuple[tuple[int, int], Tensor]]:
+    """The ``pairs`` that alone join two parts of the view graph they make over ``num_views``
+    views (its bridges: without one, its part of the graph falls in two), each with the (V,)
+    bool mask of the views on one side of it. Tarjan's bridge search, one depth-first pass
+    (iterative: a video's chain of views is deeper than Python's recursion)."""
+    neighbours: list[list[tuple[int, int]]] = [[] for _ in range(num_views)]
+    for k, (i, j) in enumerate(pairs):
+        neighbours[i].append((j, k))
+        neighbours[j].append((i, k))
+    entry, low, last = [-1] * num_views, [0] * num_views, [0] * num_views  # last: the subtree's latest entry
+    found, clock = [], 0
+    for root in range(num_views):
+        if entry[root] >= 0:
+            continue
+        entry[root] = low[root] = clock
+        clock += 1
+        stack = [(root, -1, iter(neighbours[root]))]
+        while stack:
+            view, via, rest = stack[-1]
+            for other, k in rest:
+                if k == via:
+                    continue
+                if entry[other] < 0:
+                    entry[other] = low[other] = clock
+                    clock += 1
+                    stack.append((other, k, iter(neighbours[other])))
+                    break
+                low[view] = min(low[view], entry[other])
+            else:
+                stack.pop()
+                last[view] = clock - 1
+                if stack:
+                    parent = stack[-1][0]
+                    low[parent] = min(low[parent], low[view])
+                    if low[view] > entry[parent]:
+                        found.append((via, view))
+    entries = torch.tensor(entry)
+    return [(pairs[k], (entries >= entry[view]) & (entries <= last[view])) for k, view in found]
+
+
+def second_links(chosen: list[tuple[int, int]], considered: list[tuple[int, int]], scores: Tensor,
+                 inliers: dict[tuple[int, int], int], config: PairsConfig, num_views: int) -> list[tuple[int, int]]:
+    """For each pair that alone joins two parts of the ``chosen`` pairs' view graph
+    (:func:`single_links`), the ``considered`` pair across the same cut with the most coarse
+    homography ``inliers`` (then the higher coarse score; ``min_score`` coarse matches at least),
+    where there is one. Every track that ties one part to the other runs through that one pair's
+    matches, so the parts' relative pose and scale rest on it alone: a weak one (few right
+    matches, little parallax under forward motion) leaves them misplaced against each other with
+    nothing to tell, where a second pair lets the mapping and the adjustment check one against
+    the other. The second pair's coarse homography may hold on too few matches (under forward
+    motion no one plane holds most of a pair's matches)."""
+    group = view_groups(chosen, num_views)
+    taken = set(chosen)
+    added = []
+    for (i, j), side in single_links(chosen, num_views):
+        across = [pair for pair in considered if pair not in taken and group[pair[0]] == group[pair[1]] == group[i]
+                  and bool(side[pair[0]]) != bool(side[pair[1]]) and int(scores[pair]) >= config.min_score]
+        if across:
+            best = max(across, key=lambda pair: (inliers[pair], int(scores[pair])))
+            taken.add(best)
+            added.append(best)
+    return added
 
 
 def view_groups(pairs: list[tuple[int, int]], num_views: int) -> list[int]:

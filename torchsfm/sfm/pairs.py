@@ -278,16 +278,22 @@ def second_links(chosen: list[tuple[int, int]], considered: list[tuple[int, int]
     nothing to tell, where a second pair lets the mapping and the adjustment check one against
     the other. The second pair's coarse homography may hold on too few matches (under forward
     motion no one plane holds most of a pair's matches)."""
-    group = view_groups(chosen, num_views)
     taken = set(chosen)
+    candidates = [pair for pair in considered if pair not in taken and int(scores[pair]) >= config.min_score]
+    if not candidates:
+        return []
+    group = torch.tensor(view_groups(chosen, num_views))
+    first, second = torch.tensor(candidates).T  # (C,) each
+    score = scores[first, second].long()
+    rank = torch.tensor([inliers[pair] for pair in candidates]) * (int(score.max()) + 1) + score  # by inliers, then score
+    free = group[first] == group[second]  # (C,): a candidate within one part of the graph, not yet added
     added = []
-    for (i, j), side in single_links(chosen, num_views):
-        across = [pair for pair in considered if pair not in taken and group[pair[0]] == group[pair[1]] == group[i]
-                  and bool(side[pair[0]]) != bool(side[pair[1]]) and int(scores[pair]) >= config.min_score]
-        if across:
-            best = max(across, key=lambda pair: (inliers[pair], int(scores[pair])))
-            taken.add(best)
-            added.append(best)
+    for (i, _), side in single_links(chosen, num_views):
+        across = free & (group[first] == group[i]) & (side[first] != side[second])
+        if bool(across.any()):
+            best = int(torch.where(across, rank, -1).argmax())  # the first of equals, as the considered order has them
+            free[best] = False
+            added.append(candidates[best])
     return added
 
 

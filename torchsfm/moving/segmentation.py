@@ -59,10 +59,12 @@ minimal-sample models:
    only lost coverage stays).
    Given the number of motions, the settled partition is kept when it has that many. With
    fewer, the motion whose cut in two gains most is cut until it has that many
-   (:func:`split_least_rigid`: two bodies taken for one); that partition or the pieces cut into
+   (:func:`split_least_rigid`: two bodies taken for one); with more, the two motions that
+   one rigid motion explains best are joined until it has that many (:func:`merge_most_rigid`:
+   one motion taken for two, such as a room's walls). That partition or the pieces cut into
    that many anew (step 4 with the count given, unsettled), whichever explains the tracks better
-   (:func:`partition_residual`). With more, the cut anew. The number says how many motions there
-   are, the scene's geometry which tracks belong to it.
+   (:func:`partition_residual`). The number says how many motions there are, the scene's
+   geometry which tracks belong to it.
 
 7. **An ensemble** (``config.runs`` > 1; 1 by default): steps 1-6 run that many times on
    successive draws of the generator, and the result is the run whose partition agrees most with
@@ -97,7 +99,8 @@ from torchsfm.moving.affinity import explained_tracks, preference_similarity, st
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.pair_fits import frame_pairs, motion_residuals, track_residuals
-from torchsfm.moving.scene import grid_coverage, partition_residual, rechosen_scene, scene_first, settle_scene, split_least_rigid
+from torchsfm.moving.scene import (grid_coverage, merge_most_rigid, partition_residual, rechosen_scene, scene_first, settle_scene,
+                                   split_least_rigid)
 from torchsfm.moving.track_input import check_tracks
 from torchsfm.robust.samplers import resolve_generator, side_generator
 
@@ -273,6 +276,8 @@ def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, n
         split = labels
         while split is not None and int(split.max()) + 1 < num_motions:
             split = split_least_rigid(tracks, visible, split, piece_of, affinity, index, config, generator)
+        while split is not None and int(split.max()) + 1 > num_motions:
+            split = merge_most_rigid(tracks, visible, split, config, generator)
         if split is not None and int(split.max()) + 1 == num_motions:
             candidates.append(split)
         labels = min(candidates, key=lambda partition: partition_residual(tracks, visible, partition))

@@ -424,9 +424,9 @@ def merge_most_rigid(tracks: Tensor, visible: Tensor, labels: Tensor, config: Se
     the larger over its two motions of their median reprojection RMS under the union's fit over
     that under their own — one rigid motion taken for two (a room's walls clustered apart) fits
     as one nearly as well as apart, two bodies do not. The reconstruction, not one F per frame
-    pair (:func:`partition_residual`): two rotating boards of Hopkins155 1R2TCRT fit one F per
-    frame pair better joined than apart (mean 0.40 against 0.54 px at seed 0), and joining by F
-    fits left 1RT2RCRT at seed 2 6.5 % misclassified where this leaves 0.9 %. Known limit: a car
+    pair (:func:`partition_residual`): two of Hopkins155 1R2TCRT's three motions, found right at
+    seed 0, fit one F per frame pair better joined than apart (mean 0.40 against 0.54 px), and
+    joining by F fits left 1RT2RCRT at seed 2 6.5 % misclassified where this leaves 0.9 %. Known limit: a car
     the scene's rigid motion explains (the ambiguity of a car ahead moving along the camera's
     direction) joins the scene rather than the other part of it (KT3DMoSeg Seq009_Clip01, seed
     1: 19.6 % against 8.6 % cut anew)."""

@@ -353,8 +353,8 @@ def test_a_given_number_of_motions_cuts_the_motion_that_holds_two(shared_data, s
 
 def test_a_given_number_of_motions_joins_a_scene_found_in_two(shared_data):
     """Hopkins155 2T3RCTP (seed 0): the number found is 4 — the room's background cut in two
-    (132 and 77 tracks), each object whole. Given three motions, the two motions whose union
-    explains the tracks best are joined — the background's halves — instead of the pieces being
+    (132 and 77 tracks), each object whole. Given three motions, the two motions one rigid
+    motion explains best are joined — the background's halves — instead of the pieces being
     cut into three anew, which joined the background's larger half to an object (28.1 %
     misclassified; joining by one F per frame pair chose the halves too)."""
     pytest.importorskip("scipy")

@@ -919,6 +919,36 @@ def test_kmeans_stops_at_its_fixed_point_with_the_labels_of_every_iteration(monk
     assert torch.equal(found, lloyd(30))
 
 
+def test_kmeans_of_a_spectral_embedding_does_not_depend_on_its_eigenvector_basis():
+    """The embedding of three unlinked groups (each group's rows in a subspace of its own,
+    orthogonal to the others', as the leading eigenvectors of three unlinked components put
+    them), and the same rotated by a random orthogonal matrix — another basis of the same
+    eigenspace, which another thread count or LAPACK may return. A point of one group is exactly
+    √2 from every centre of the other groups: k-means must give the same labels for both
+    bases, at every seed (ties go to the first centre, not to rounding)."""
+    from torchsfm.moving.clustering import kmeans
+
+    g = torch.Generator().manual_seed(0)
+    blocks = []
+    for group in range(3):
+        rows = torch.zeros(60, 9, dtype=torch.float64)
+        rows[:, 3 * group:3 * group + 3] = torch.randn(60, 3, generator=g, dtype=torch.float64) + torch.tensor([4.0, 0, 0], dtype=torch.float64)
+        blocks.append(rows)
+    points = torch.cat(blocks)
+    points = points / points.norm(dim=1, keepdim=True)
+    rotation, _ = torch.linalg.qr(torch.randn(9, 9, generator=g, dtype=torch.float64))
+    for seed in range(10):
+        assert torch.equal(kmeans(points, 6, 10, 30, torch.Generator().manual_seed(seed)),
+                           kmeans(points @ rotation, 6, 10, 30, torch.Generator().manual_seed(seed))), f"seed {seed}"
+
+
+def test_first_within_tie_takes_the_first_of_values_equal_to_rounding():
+    from torchsfm.moving.clustering import first_within_tie
+
+    values = torch.tensor([[2.0, 2 ** 0.5, 2 ** 0.5 * (1 - 1e-15), 1.5], [1.0, 0.5, 0.25, 0.25 + 1e-6]], dtype=torch.float64)
+    assert first_within_tie(values).tolist() == [1, 2]
+
+
 def test_adjusted_rand_index_is_one_for_the_same_partition_and_near_zero_for_unrelated_ones():
     from torchsfm.moving.segmentation import adjusted_rand_index
 

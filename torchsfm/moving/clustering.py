@@ -13,6 +13,7 @@ from torch import Tensor
 from torchsfm.config import SegmentationConfig
 
 SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
+TIE = 1e-9  # values this close (relative) count as equal: float64 rounding of a sum of a few thousand terms stays near 1e-13
 EIGEN_RESIDUAL = 1e-6  # largest LOBPCG residual accepted: it stops near 1e-8 (sqrt of float64 eps); a stalled run is far off
 
 
@@ -46,13 +47,15 @@ def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: to
     """Lloyd's k-means on (N, D) points with ``restarts`` random initializations run as one
     batch, for ``iterations`` steps or until every restart's labels repeat (a fixed point: the
     centres, and so every later step, would repeat too); the labels (N,) of the restart with the
-    smallest within-cluster sum of squares."""
+    smallest within-cluster sum of squares. Ties — a point as far from two centres, two restarts
+    of one cost — go to the first, whatever the rounding (:func:`first_within_tie`), so the labels
+    depend on the points' distances only, not on the basis they are written in."""
     N = points.shape[0]
     start = torch.rand(restarts, N, generator=generator, device=points.device).argsort(1)[:, :k]
     centres = points[start]  # (R, k, D)
     previous = None
     for _ in range(iterations):
-        labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)  # (R, N)
+        labels = _nearest(points, centres)  # (R, N)
         if previous is not None and torch.equal(labels, previous):
             break
         previous = labels
@@ -60,9 +63,29 @@ def kmeans(points: Tensor, k: int, restarts: int, iterations: int, generator: to
         counts = one_hot.sum(1)  # (R, k)
         sums = one_hot.transpose(1, 2) @ points  # (R, k, D)
         centres = torch.where(counts[..., None] > 0, sums / counts[..., None].clamp_min(1), centres)
-    labels = torch.cdist(points[None].expand(restarts, -1, -1), centres).argmin(2)
+    labels = _nearest(points, centres)
     cost = (points[None] - centres.gather(1, labels[..., None].expand(-1, -1, points.shape[1]))).square().sum((1, 2))
-    return labels[int(cost.argmin())]
+    return labels[int(first_within_tie(cost))]
+
+
+def _nearest(points: Tensor, centres: Tensor) -> Tensor:
+    """(R, N) the nearest of each restart's (R, k, D) centres to every (N, D) point, ties (within
+    ``TIE``) to the first. The rows of a spectral embedding of unlinked groups are orthogonal:
+    a point is then exactly as far from several centres, and rounding — which differs with the
+    eigenvector basis, itself arbitrary for repeated eigenvalues and so different on another
+    thread count or LAPACK — would pick among them and send Lloyd's steps elsewhere. Distances
+    are computed directly (cdist's matrix-product form loses about 8 digits to cancellation)."""
+    distances = torch.cdist(points[None].expand(centres.shape[0], -1, -1), centres,
+                            compute_mode="donot_use_mm_for_euclid_dist")
+    return first_within_tie(distances)
+
+
+def first_within_tie(values: Tensor) -> Tensor:
+    """(*,) the index along the last dimension of the first of the (*, k) ``values`` within
+    ``TIE`` (times their largest magnitude, at least 1) of their smallest: an argmin whose ties do
+    not depend on rounding."""
+    tolerance = TIE * values.abs().amax(-1, keepdim=True).clamp_min(1)
+    return (values <= values.amin(-1, keepdim=True) + tolerance).to(torch.uint8).argmax(-1)
 
 
 def spectral_partition(vectors: Tensor, count: int, config: SegmentationConfig, generator: torch.Generator) -> Tensor:

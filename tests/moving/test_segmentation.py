@@ -951,7 +951,8 @@ def test_kmeans_of_a_spectral_embedding_does_not_depend_on_its_eigenvector_basis
     blocks = []
     for group in range(3):
         rows = torch.zeros(60, 9, dtype=torch.float64)
-        rows[:, 3 * group:3 * group + 3] = torch.randn(60, 3, generator=g, dtype=torch.float64) + torch.tensor([4.0, 0, 0], dtype=torch.float64)
+        offset = torch.tensor([4.0, 0, 0], dtype=torch.float64)  # each group a cluster about one direction of its subspace
+        rows[:, 3 * group:3 * group + 3] = torch.randn(60, 3, generator=g, dtype=torch.float64) + offset
         blocks.append(rows)
     points = torch.cat(blocks)
     points = points / points.norm(dim=1, keepdim=True)

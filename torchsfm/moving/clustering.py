@@ -13,7 +13,7 @@ from torch import Tensor
 from torchsfm.config import SegmentationConfig
 
 SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14)
-TIE = 1e-9  # values this close (relative) count as equal: float64 rounding of a sum of a few thousand terms stays near 1e-13
+TIE = 1e-9  # values this close (times the largest, at least 1) count as equal (first_within_tie); float64 rounding here stays near 1e-13
 EIGEN_RESIDUAL = 1e-6  # largest LOBPCG residual accepted: it stops near 1e-8 (sqrt of float64 eps); a stalled run is far off
 
 

@@ -478,11 +478,16 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28
 
 
-def test_preference_counts_and_similarity_are_exact():
-    """The int8 products of 0/1 preference matrices equal float64 ones, so the Tanimoto
-    similarity equals its definition |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
+@pytest.mark.parametrize("int8_faster", [True, False])
+def test_preference_counts_and_similarity_are_exact(int8_faster, monkeypatch):
+    """The int8 and the float32 products of 0/1 preference matrices (whichever this CPU runs
+    faster) equal float64 ones, so the Tanimoto similarity equals its definition
+    |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
+    from torchsfm.moving import affinity
     from torchsfm.moving.affinity import binary_operand, binary_products, tanimoto_similarity
 
+    monkeypatch.setattr(affinity, "int8_products_are_faster", lambda: int8_faster)
+    assert binary_operand(torch.ones(2, 3, dtype=torch.bool)).dtype == (torch.int8 if int8_faster else torch.float32)
     g = torch.Generator().manual_seed(3)
     defined = torch.rand(37, 301, generator=g) < 0.8
     preference = (torch.rand(37, 301, generator=g) < 0.3) & defined

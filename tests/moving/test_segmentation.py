@@ -478,6 +478,18 @@ def test_frame_pairs_are_as_wide_as_the_tracks_allow():
     assert (pairs[:, 1] - pairs[:, 0] == 2).all() and pairs.shape[0] == 28
 
 
+def test_int8_products_are_not_chosen_where_the_build_has_none(monkeypatch):
+    """The timing that chooses the product type answers False, not an error, where torch has no
+    CPU int8 products; the preference counts then run in float32."""
+    from torchsfm.moving import affinity
+
+    def missing(*_):
+        raise RuntimeError("_int_mm: not implemented for this CPU")
+
+    monkeypatch.setattr(torch, "_int_mm", missing)
+    assert affinity.int8_products_are_faster.__wrapped__() is False
+
+
 @pytest.mark.parametrize("int8_faster", [True, False])
 def test_preference_counts_and_similarity_are_exact(int8_faster, monkeypatch):
     """The int8 and the float32 products of 0/1 preference matrices (whichever this CPU runs

@@ -84,9 +84,10 @@ def binary_products(a: Tensor, b: Tensor) -> Tensor:
 @functools.cache
 def int8_products_are_faster() -> bool:
     """Whether int8 products with int32 sums beat float32 ones on this CPU, timed once per
-    process on 128 x 1024 operands (best of three each). Measured: 5x faster on a CPU with VNNI
-    instructions, 27x slower on one with AVX2 only. Both are exact on 0/1 counts, so the choice
-    sets the time, never the result. False where this build has no CPU int8 products."""
+    process on 128 x 1024 operands (best of three each). int8 was measured 5x faster on a CPU
+    with VNNI instructions (when it was introduced) and 27x slower on one with AVX2 only. Both
+    are exact on 0/1 counts, so the choice sets the time, never the result. False where this
+    build has no CPU int8 products."""
     operand = torch.rand(128, 1024, generator=torch.Generator().manual_seed(0)) < 0.5
 
     def best_time(a: Tensor) -> float:

@@ -90,13 +90,13 @@ def int8_products_are_faster() -> bool:
     build has no CPU int8 products."""
     operand = torch.rand(128, 1024, generator=torch.Generator().manual_seed(0)) < 0.5
 
+    def seconds(a: Tensor) -> float:
+        start = time.perf_counter()
+        binary_products(a, a)
+        return time.perf_counter() - start
+
     def best_time(a: Tensor) -> float:
-        times = []
-        for _ in range(3):
-            start = time.perf_counter()
-            binary_products(a, a)
-            times.append(time.perf_counter() - start)
-        return min(times)
+        return min(seconds(a) for _ in range(3))
 
     try:
         int8_time = best_time(operand.to(torch.int8))

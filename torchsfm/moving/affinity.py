@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import functools
 import time
-import warnings
 
 import torch
 from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
 from torchsfm.moving.hypotheses import MODELS
+from torchsfm.numerics import sparse_rows
 
 SPARSE_PREFERENCES = 0.02  # share of set preference entries below which the Tanimoto counts multiply sparsely (see
 # tanimoto_similarity): 0.5-0.8 % (KITTI 06's tracks, 500-3000 of them) 0.31-0.59x the dense time, 4-8 % (KT3DMoSeg's clips) 0.94-1.65x
@@ -79,9 +79,7 @@ def sparse_binary_products(a: Tensor, others: list[Tensor]) -> list[Tensor]:
     """(n, h) bool ``a`` and each (m, h) bool of ``others`` -> the (n, m) float32 counts a @ b.T,
     exact (up to 2^24), with ``a`` as one compressed-sparse-row matrix: the work is a's nonzeros
     times m, not n · h · m."""
-    with warnings.catch_warnings():  # PyTorch calls its CSR layout beta; the products used here are exact and tested
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-        rows = a.float().to_sparse_csr()
+    rows = sparse_rows(a.float())
     return [torch.sparse.mm(rows, b.float().T) for b in others]
 
 

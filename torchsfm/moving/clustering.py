@@ -7,12 +7,11 @@ where not given), and the normalized cut that compares partitions.
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
+from torchsfm.numerics import sparse_rows
 
 SPARSE_EIGEN_TRACKS = 1500  # from here the sparse LOBPCG beats the dense eigh (0.16 s against 0.37 s; at 1000, 0.12 against 0.14;
 # measured with a COO matrix, which multiplies 3x slower than the CSR one now used: KITTI 06's 3000 tracks 1.73 -> 0.59 s)
@@ -37,10 +36,7 @@ def leading_eigenvectors(affinity: Tensor, count: int) -> tuple[Tensor, Tensor]:
     if N >= SPARSE_EIGEN_TRACKS and 3 * count <= N:
         start = torch.randn(N, count, generator=torch.Generator(normalized.device).manual_seed(0), dtype=normalized.dtype,
                             device=normalized.device)
-        with warnings.catch_warnings():  # PyTorch calls its CSR layout beta; LOBPCG only multiplies by it
-            warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-            operator = normalized.to_sparse_csr()
-        values, vectors = torch.lobpcg(operator, k=count, X=start, largest=True)
+        values, vectors = torch.lobpcg(sparse_rows(normalized), k=count, X=start, largest=True)
         values, order = values.sort(descending=True)
         vectors = vectors[:, order]
         if float((normalized @ vectors - vectors * values).norm(dim=0).max()) <= EIGEN_RESIDUAL:

@@ -249,13 +249,12 @@ def reconstructed(tracks: Tensor, visible: Tensor, members: Tensor, config: Segm
 
 
 def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
-                       plane: Tensor | None = None) -> Tensor:
+                       plane: Tensor) -> Tensor:
     """(N,) how far each track lies beyond infinity under the (N,) bool ``scene`` tracks' pose
     (:func:`beyond_infinity`) over the bound noise at the tracker's floor
     (``config.scene_tolerance``) stays within for as many frame pairs (> 1: beyond). Only for a
     scene with parallax (zeros without: the pose's translation is noise; ``plane``: the scene's
-    :func:`plane_residuals`, where the caller has them)."""
-    plane = plane_residuals(tracks, visible, scene, pairs) if plane is None else plane
+    :func:`plane_residuals`)."""
     if not has_parallax(plane, scene, config):
         return torch.zeros(tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
     return beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)

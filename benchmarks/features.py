@@ -8,6 +8,9 @@ epipolar geometry (symmetric distance < 1.5 px):
   ``estimate_fundamental`` (bucketed RANSAC + LM);
 * OpenCV Harris: ``goodFeaturesToTrack`` (Harris, 2000 corners) + ``cornerSubPix`` → mutual-best
   NCC in the same 100 px disc (NumPy, 11×11 patches) → ``findFundamentalMat`` USAC_MAGSAC;
+* torchsfm SIFT (``pairs.matcher=sift`` and the SIFT bridge's features): Kornia's SIFT detector
+  with our patches and pooled descriptor (``sift_features``, 4000 features) → mutual nearest
+  neighbours with ratio 0.8 (Kornia ``match_smnn``) → ``estimate_fundamental``;
 * OpenCV SIFT: SIFT + ratio test 0.8 → ``findFundamentalMat`` USAC_MAGSAC.
 
 The last column is time / torchsfm's time (> 1: torchsfm is faster).
@@ -25,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from kornia.feature import match_smnn
 
 from torchsfm.config import Config
 from torchsfm.features.harris import detect_corners
@@ -33,6 +37,7 @@ from torchsfm.io.datasets import read_strecha
 from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
+from torchsfm.sfm.sift import sift_features
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -42,6 +47,14 @@ def torchsfm_pipeline(grey1: torch.Tensor, grey2: torch.Tensor, config: Config):
     p1, p2 = corners.of_image(0), corners.of_image(1)
     matches = match_corners(grey1, grey2, p1, p2, config.matching)
     x1, x2 = p1[matches.index1].double(), p2[matches.index2].double()
+    result = estimate_fundamental(x1, x2, config=config, generator=torch.Generator().manual_seed(0))
+    return x1[result.inlier_mask], x2[result.inlier_mask]
+
+
+def torchsfm_sift_pipeline(grey1: torch.Tensor, grey2: torch.Tensor, config: Config):
+    (p1, p2), (d1, d2) = sift_features([grey1, grey2], config.pairs.sift_features)
+    _, index = match_smnn(d1, d2, config.pairs.sift_ratio)
+    x1, x2 = p1[index[:, 0]], p2[index[:, 1]]
     result = estimate_fundamental(x1, x2, config=config, generator=torch.Generator().manual_seed(0))
     return x1[result.inlier_mask], x2[result.inlier_mask]
 
@@ -100,7 +113,9 @@ def main() -> None:
     images = [read_image(path) for path in sequence.images]
     greys = [to_grey(image) for image in images]
     greys8 = [(grey[0] * 255).round().byte().numpy() for grey in greys]
-    pipelines = {"torchsfm (Harris+SM+RANSAC/LM)": lambda i, j: torchsfm_pipeline(greys[i], greys[j], config)}
+    greys8_torch = [torch.from_numpy(grey)[None] for grey in greys8]
+    pipelines = {"torchsfm (Harris+SM+RANSAC/LM)": lambda i, j: torchsfm_pipeline(greys[i], greys[j], config),
+                 "torchsfm SIFT (Kornia detector)+SMNN": lambda i, j: torchsfm_sift_pipeline(greys8_torch[i], greys8_torch[j], config)}
     try:
         import cv2
 

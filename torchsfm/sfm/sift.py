@@ -14,8 +14,10 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from kornia.feature import LAFDescriptor, SIFTDescriptor, SIFTFeature, get_laf_center, match_smnn
+from kornia.feature import LAFOrienter, SIFTDescriptor, SIFTFeature, get_laf_center, get_laf_orientation, laf_is_filled, match_smnn, \
+    set_laf_orientation
 from kornia.filters import spatial_gradient
+from kornia.geometry.transform import pyrdown
 
 from torchsfm.camera import undistort_points
 from torchsfm.config import PairsConfig
@@ -79,16 +81,36 @@ class InBatches(nn.Module):
 
 
 class PooledSIFTDescriptor(SIFTDescriptor):
-    """Kornia's SIFT patch descriptor with the gradient's orientation bins pooled by one
-    convolution over all of them, where Kornia runs one per bin over a mask of the bin: the
+    """Kornia's SIFT patch descriptor with the gradient's orientation bins pooled by one matrix
+    product, where Kornia runs one strided convolution per bin over a mask of the bin: the
     magnitude is split between the two nearest bins (one scatter into an (P, bins, h, w) stack)
-    and every bin is pooled by the same kernel — the same numbers (``tests/sfm/test_sift.py``),
-    in two thirds of the time. (P, 1, h, w) float patches -> (P, 128) descriptors."""
+    and every bin's cells are pooled at once by the convolution written out as a (h·w, cells)
+    matrix of its kernel (:meth:`pooling_matrix`) — Kornia's numbers up to the order of the sums
+    (``tests/sfm/test_sift.py``), in a fraction of the time. (P, 1, h, w) float patches -> (P, 128)
+    descriptors."""
 
     @classmethod
     def like(cls, descriptor: SIFTDescriptor) -> PooledSIFTDescriptor:
         """One with ``descriptor``'s patch size, bins, clipping and RootSIFT setting."""
         return cls(descriptor.patch_size, descriptor.num_ang_bins, descriptor.num_spatial_bins, descriptor.rootsift, descriptor.clipval)
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.register_buffer("pooling", self.pooling_matrix(), persistent=False)
+
+    def pooling_matrix(self) -> Tensor:
+        """(h·w, cells²) float32: column (i, j) holds the pooling kernel placed where the
+        convolution (stride, zero padding) centres cell (i, j) on the patch."""
+        kernel = self.pk.weight.detach()[0, 0]  # (k, k)
+        size, (stride, _), (pad, _) = self.patch_size, self.pk.stride, self.pk.padding
+        cells = self.num_spatial_bins
+        origin = torch.arange(cells) * stride - pad  # each cell's first patch row (or column)
+        offset = torch.arange(size)[None] - origin[:, None]  # (cells, size): the kernel's row at each patch row
+        inside = (offset >= 0) & (offset < kernel.shape[0])
+        rows = offset.clamp(0, kernel.shape[0] - 1)
+        placed = kernel[rows[:, :, None, None], rows[None, None]]  # (cells, size, cells, size): [i, y, j, x]
+        placed = placed * (inside[:, :, None, None] & inside[None, None])
+        return placed.permute(1, 3, 0, 2).reshape(size * size, cells * cells)
 
     def forward(self, patches: Tensor) -> Tensor:
         gradient = spatial_gradient(patches, "diff")
@@ -105,10 +127,53 @@ class PooledSIFTDescriptor(SIFTDescriptor):
         bins = patches.new_zeros(P, self.num_ang_bins, h, w)
         bins.scatter_(1, lower_bin, (1.0 - upper_share) * magnitude)
         bins.scatter_add_(1, (lower_bin + 1) % self.num_ang_bins, upper_share * magnitude)
-        pooled = F.conv2d(bins.view(P * self.num_ang_bins, 1, h, w), self.pk.weight.to(patches.dtype), None, self.pk.stride,
-                          self.pk.padding).view(P, -1)
+        pooled = (bins.view(P * self.num_ang_bins, h * w) @ self.pooling.to(patches.dtype)).view(P, -1)
         pooled = F.normalize(F.normalize(pooled, dim=1).clamp(0.0, self.clipval), dim=1)
         return torch.sqrt(F.normalize(pooled, p=1, dim=1) + self.eps) if self.rootsift else pooled
+
+
+def pyramid_patches(image: Tensor, frames: Tensor, size: int) -> Tensor:
+    """(N, 1, size, size) patches of a (1, 1, H, W) float image at (N, 2, 3) local affine frames
+    (pixels, pixel centres at integers), sampled as Kornia's ``extract_patches_from_pyramid``
+    samples them: cell (i, j) at c + A (u_j, u_i), u_k = (2k + 1) / size - 1, read bilinearly from
+    the pyramid level (``pyrdown``, halving while the shorter side keeps ``size`` pixels) numbered
+    floor(log2(2 sqrt|det A| / size)), clamped to the levels there are, and outside a level from
+    its nearest border pixel. Kornia builds each cell's coordinate by a chain of element-wise passes
+    over all N · size² cells (and an expanded copy of the base grid per frame); here a cell's
+    normalized coordinate, the same at every level, is one broadcast sum of a row's and a
+    column's offsets — the same patches up to the rounding of the coordinates, in a fifth of the
+    time."""
+    h, w = image.shape[-2:]
+    levels = [image]
+    for _ in range(1, max(1, min(h, w) // size)):
+        level_h, level_w = levels[-1].shape[-2:]
+        if min(level_h, level_w) <= 2 or min(level_h // 2, level_w // 2) < size:
+            break
+        levels.append(pyrdown(levels[-1]))
+    A, centre = frames[:, :, :2], frames[:, :, 2]
+    level = (2 * A.det().abs().sqrt() / size).log2().clamp(0, len(levels) - 1).long()
+    sides = image.new_tensor([w, h])  # normalized coordinate (2x + 1) / side - 1 at pixel x of every level
+    u = (2 * torch.arange(size, dtype=image.dtype, device=image.device) + 1) / size - 1
+    along_row = (2 * A[:, :, 0] / sides)[:, None] * u[None, :, None]  # (N, size, 2): column j's offset
+    down_column = (2 * A[:, :, 1] / sides)[:, None] * u[None, :, None] + ((2 * centre + 1) / sides - 1)[:, None]
+    patches = image.new_zeros(frames.shape[0], 1, size, size)
+    for number, level_image in enumerate(levels):
+        which = torch.nonzero(level == number).flatten()
+        if which.numel():
+            grid = down_column[which, :, None] + along_row[which, None]  # (n, size, size, 2)
+            patches[which] = F.grid_sample(level_image, grid.view(1, -1, size, 2), padding_mode="border",
+                                           align_corners=False).view(-1, 1, size, size)
+    return patches
+
+
+class PyramidOrienter(LAFOrienter):
+    """Kornia's :class:`~kornia.feature.LAFOrienter` on patches from :func:`pyramid_patches`:
+    (1, N, 2, 3) frames and the (1, 1, H, W) image -> the frames turned to their patches' dominant
+    gradient."""
+
+    def forward(self, laf: Tensor, img: Tensor) -> Tensor:
+        angles = self.angle_detector(pyramid_patches(img, laf[0], self.patch_size)).view(laf.shape[:2])
+        return set_laf_orientation(laf, torch.rad2deg(angles) + get_laf_orientation(laf).view_as(angles))
 
 
 def sift_features(greys: list[Tensor], num_features: int, masks: list[Tensor | None] | None = None
@@ -125,16 +190,24 @@ def sift_features(greys: list[Tensor], num_features: int, masks: list[Tensor | N
 
 
 def _describe(grey: Tensor, mask: Tensor | None, num_features: int) -> tuple[Tensor, Tensor]:
-    """:func:`sift_features` of one (1, H, W) grey image: (K, 2) centres, (K, 128) descriptors;
-    a SIFT module of its own (its construction takes milliseconds), for a thread of its own."""
+    """:func:`sift_features` of one (1, H, W) grey image: (K, 2) centres, (K, 128) descriptors —
+    Kornia's SIFTFeature (its detector, 41-pixel patches, RootSIFT) with the patches of
+    :func:`pyramid_patches` and the descriptor of :class:`PooledSIFTDescriptor`, applied
+    :data:`DESCRIBED_PER_CALL` patches at a time; the detector's unfilled slots (an image with
+    fewer blobs than ``num_features``) dropped. A SIFT module of its own (its construction takes
+    milliseconds), for a thread of its own."""
     sift = SIFTFeature(num_features=num_features)
-    if isinstance(sift.descriptor, LAFDescriptor):
-        sift.descriptor.descriptor = InBatches(PooledSIFTDescriptor.like(sift.descriptor.descriptor), DESCRIBED_PER_CALL)
+    orienter = sift.detector.ori
+    sift.detector.ori = PyramidOrienter(orienter.patch_size, orienter.num_ang_bins)
+    describe = InBatches(PooledSIFTDescriptor.like(sift.descriptor.descriptor), DESCRIBED_PER_CALL)
+    image = to_unit_float(grey[None])
     with torch.no_grad():
-        frames, _, described = sift(to_unit_float(grey[None]))
-    centres = get_laf_center(frames)[0].double()
+        frames, _ = sift.detector(image)
+        frames = frames[0][laf_is_filled(frames)[0]]
+        described = describe(pyramid_patches(image, frames, sift.descriptor.patch_size))
+    centres = get_laf_center(frames[None])[0].double()
     kept = inside_mask(centres, mask)
-    return centres[kept], described[0][kept]
+    return centres[kept], described[kept]
 
 
 def sift_homographies(greys: list[Tensor], pairs: list[tuple[int, int]], config: PairsConfig,

@@ -2,9 +2,10 @@ import math
 
 import torch
 from kornia.feature import SIFTDescriptor, SIFTFeature, extract_patches_from_pyramid, laf_from_center_scale_ori, laf_is_filled
+from kornia.geometry.subpix import NonMaximaSuppression2d
 
 from torchsfm.images import to_unit_float
-from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, pyramid_patches, sift_features
+from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, SlidingNonMaxima, pyramid_patches, sift_features
 
 
 def test_a_patch_module_in_batches_gives_the_same_numbers():
@@ -28,6 +29,18 @@ def test_the_pooled_descriptor_is_kornias():
         kornia = SIFTDescriptor(41, rootsift=rootsift)
         with torch.no_grad():
             torch.testing.assert_close(PooledSIFTDescriptor.like(kornia)(patches), kornia(patches), rtol=0, atol=1e-6)
+
+
+def test_sliding_suppression_is_kornias():
+    """Random responses with plateaus (ties are no maxima) on images larger and smaller than the
+    window, odd and even windows, two channels: bit for bit Kornia's suppression, and its mask."""
+    g = torch.Generator().manual_seed(4)
+    for size in ((15, 15), (16, 9), (3, 3), (2, 5), (1, 1)):
+        for shape in ((2, 2, 64, 90), (1, 1, 15, 15), (1, 1, 12, 40), (1, 1, 300, 17)):
+            response = (torch.rand(shape, generator=g) * 20).round()  # whole numbers: many ties
+            kornia = NonMaximaSuppression2d(size)
+            assert torch.equal(SlidingNonMaxima(size)(response), kornia(response))
+            assert torch.equal(SlidingNonMaxima(size)(response, mask_only=True), kornia(response, mask_only=True))
 
 
 def test_pyramid_patches_are_kornias():

@@ -9,8 +9,9 @@ epipolar geometry (symmetric distance < 1.5 px):
 * OpenCV Harris: ``goodFeaturesToTrack`` (Harris, 2000 corners) + ``cornerSubPix`` → mutual-best
   NCC in the same 100 px disc (NumPy, 11×11 patches) → ``findFundamentalMat`` USAC_MAGSAC;
 * torchsfm SIFT (``pairs.matcher=sift`` and the SIFT bridge's features): Kornia's SIFT detector
-  with our patches and pooled descriptor (``sift_features``, 4000 features) → mutual nearest
-  neighbours with ratio 0.8 (Kornia ``match_smnn``) → ``estimate_fundamental``;
+  with our suppression, patches and pooled descriptor (``sift_features``, 4000 features) → mutual
+  nearest neighbours with ratio 0.8 (``mutual_ratio_matches``: Kornia ``match_smnn``'s pairs) →
+  ``estimate_fundamental``;
 * OpenCV SIFT: SIFT + ratio test 0.8 → ``findFundamentalMat`` USAC_MAGSAC.
 
 The last column is time / torchsfm's time (> 1: torchsfm is faster).
@@ -28,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from kornia.feature import match_smnn
 
 from torchsfm.config import Config
 from torchsfm.features.harris import detect_corners
@@ -37,7 +37,7 @@ from torchsfm.io.datasets import read_strecha
 from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
-from torchsfm.sfm.sift import sift_features
+from torchsfm.sfm.sift import mutual_ratio_matches, sift_features
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -53,7 +53,7 @@ def torchsfm_pipeline(grey1: torch.Tensor, grey2: torch.Tensor, config: Config):
 
 def torchsfm_sift_pipeline(grey1: torch.Tensor, grey2: torch.Tensor, config: Config):
     (p1, p2), (d1, d2) = sift_features([grey1, grey2], config.pairs.sift_features)
-    _, index = match_smnn(d1, d2, config.pairs.sift_ratio)
+    index = mutual_ratio_matches(d1, d2, config.pairs.sift_ratio)
     x1, x2 = p1[index[:, 0]], p2[index[:, 1]]
     result = estimate_fundamental(x1, x2, config=config, generator=torch.Generator().manual_seed(0))
     return x1[result.inlier_mask], x2[result.inlier_mask]

@@ -1,11 +1,13 @@
 import math
 
 import torch
-from kornia.feature import SIFTDescriptor, SIFTFeature, extract_patches_from_pyramid, laf_from_center_scale_ori, laf_is_filled
+from kornia.feature import SIFTDescriptor, SIFTFeature, extract_patches_from_pyramid, laf_from_center_scale_ori, laf_is_filled, \
+    match_smnn
 from kornia.geometry.subpix import NonMaximaSuppression2d
 
 from torchsfm.images import to_unit_float
-from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, SlidingNonMaxima, pyramid_patches, sift_features
+from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, SlidingNonMaxima, mutual_ratio_matches, pyramid_patches, \
+    sift_features
 
 
 def test_a_patch_module_in_batches_gives_the_same_numbers():
@@ -101,3 +103,23 @@ def test_unfilled_detector_slots_are_dropped():
     assert 0 < int(filled.sum()) < 500
     assert points.shape == (int(filled.sum()), 2) and descriptors.shape == (int(filled.sum()), 128)
     assert torch.equal(points, frames[0, filled, :, 2].double())
+
+
+def test_mutual_ratio_matches_are_kornias():
+    """Descriptors of 300 and 250 points, 150 of them the same points re-described with noise
+    (matches; a third of them with a near twin in the other set, which fails the ratio test), a
+    descriptor copied twice into the other set (a tie at its nearest: no match), at ratios 0.6,
+    0.8, 0.95: Kornia's ``match_smnn`` pairs, in its order; none with fewer than two descriptors."""
+    g = torch.Generator().manual_seed(5)
+    first = torch.nn.functional.normalize(torch.rand(300, 128, generator=g), dim=1)
+    second = torch.nn.functional.normalize(torch.rand(250, 128, generator=g), dim=1)
+    second[:150] = torch.nn.functional.normalize(first[100:250] + 0.05 * torch.rand(150, 128, generator=g), dim=1)
+    second[150:200] = torch.nn.functional.normalize(first[100:150] + 0.06 * torch.rand(50, 128, generator=g), dim=1)
+    second[200], second[201] = first[0], first[0]
+    for ratio in (0.6, 0.8, 0.95):
+        for a, b in ((first, second), (second, first)):
+            _, expected = match_smnn(a, b, ratio)
+            found = mutual_ratio_matches(a, b, ratio)
+            assert torch.equal(found, expected)
+            assert 0 < found.shape[0] < 150 and not bool((found[:, 0 if a is first else 1] == 0).any())
+    assert mutual_ratio_matches(first[:1], second, 0.8).shape == (0, 2)

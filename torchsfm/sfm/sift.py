@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from kornia.feature import LAFOrienter, SIFTDescriptor, SIFTFeature, get_laf_center, get_laf_orientation, laf_is_filled, match_smnn, \
+from kornia.feature import LAFOrienter, SIFTDescriptor, SIFTFeature, get_laf_center, get_laf_orientation, laf_is_filled, \
     set_laf_orientation
 from kornia.filters import spatial_gradient
 from kornia.geometry.subpix import NonMaximaSuppression2d
@@ -57,10 +57,45 @@ class MatchSiftFeatures(ConfiguredStage):
         state.putative = {}
         for i, j in pairs_to_match(state.greys, config.pairs, generator=state.generator, focal=state.focal_lengths(), masks=state.masks):
             state.report(f"matching views {i} and {j}")
-            _, index = match_smnn(state.descriptors[i], state.descriptors[j], config.pairs.sift_ratio)
+            index = mutual_ratio_matches(state.descriptors[i], state.descriptors[j], config.pairs.sift_ratio)
             if index.shape[0] >= config.reconstruction.min_pair_inliers:
                 state.putative[(i, j)] = (index[:, 0], index[:, 1])
         return state
+
+
+def mutual_ratio_matches(descriptors1: Tensor, descriptors2: Tensor, ratio: float) -> Tensor:
+    """(M, 2) index pairs of (N1, D) and (N2, D) descriptors that are each other's nearest
+    (Euclidean) neighbours and pass Lowe's ratio test both ways, nearest over second-nearest
+    distance at most ``ratio``: Kornia's ``match_smnn``, rows in ascending order of the first
+    index, none where either side has fewer than two descriptors. One matrix of squared
+    distances (one product, as ``cdist`` makes it) read both ways: each row's nearest by ``argmin``
+    and its second by ``amin`` with the nearest masked; a row's nearest j is mutual where the
+    distance equals column j's ``amin``, whose second is read with that entry masked — where
+    Kornia's ``topk`` on rows and columns took most of its time."""
+    if descriptors1.shape[0] < 2 or descriptors2.shape[0] < 2:
+        return torch.empty(0, 2, dtype=torch.long, device=descriptors1.device)
+    squared = torch.addmm(descriptors2.square().sum(1)[None], descriptors1, descriptors2.T, alpha=-2.0)
+    squared += descriptors1.square().sum(1)[:, None]  # (N1, N2)
+    rows = torch.arange(squared.shape[0], device=squared.device)
+    nearest = squared.argmin(1)
+    nearest_value = squared[rows, nearest]
+    squared[rows, nearest] = torch.inf
+    forward = passes_ratio(nearest_value, squared.amin(1), ratio)
+    squared[rows, nearest] = nearest_value
+    column_nearest = squared.amin(0)  # (N2,)
+    candidate = torch.nonzero(forward & (nearest_value == column_nearest[nearest])).flatten()
+    columns = nearest[candidate]
+    squared[candidate, columns] = torch.inf
+    backward = passes_ratio(column_nearest[columns], squared.amin(0)[columns], ratio)
+    alone = torch.bincount(columns, minlength=squared.shape[1])[columns] == 1  # two rows at a column's least distance: ratio 1
+    keep = backward & alone
+    return torch.stack([candidate[keep], columns[keep]], 1)
+
+
+def passes_ratio(nearest: Tensor, second: Tensor, ratio: float) -> Tensor:
+    """Lowe's ratio test on squared distances (rounding below zero clamped, as ``cdist`` does):
+    sqrt(nearest) / sqrt(second) <= ``ratio`` (0 / 0, two copies of one descriptor, fails)."""
+    return nearest.clamp_min(0.0).sqrt() / second.clamp_min(0.0).sqrt() <= ratio
 
 
 DESCRIBED_PER_CALL = 256  # patches per call of the patch descriptor
@@ -267,7 +302,7 @@ def sift_homographies(greys: list[Tensor], pairs: list[tuple[int, int]], config:
     matches = []
     for i, j in pairs:
         (points_i, descriptors_i), (points_j, descriptors_j) = described[i], described[j]
-        _, index = match_smnn(descriptors_i, descriptors_j, config.sift_ratio)
+        index = mutual_ratio_matches(descriptors_i, descriptors_j, config.sift_ratio)
         matches.append(torch.cat([points_i[index[:, 0]], points_j[index[:, 1]]], -1))
     homographies, _ = fit_homographies(pairs, matches, config, generator)
     return {pair: H for pair, H in homographies.items() if H is not None}

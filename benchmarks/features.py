@@ -37,7 +37,7 @@ from torchsfm.io.datasets import read_strecha
 from torchsfm.images import read_image, to_grey
 from torchsfm.matching.matcher import match_corners
 from torchsfm.estimators.two_view_geometry import estimate_fundamental
-from torchsfm.sfm.sift import mutual_ratio_matches, sift_features
+from torchsfm.features.sift import mutual_ratio_matches, sift_features
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 

@@ -14,7 +14,7 @@ from torchsfm.evaluation import camera_errors
 from torchsfm.images import inside_mask, read_image, read_mask, reduce_mask
 from torchsfm.sfm.incremental import per_image_masks
 from torchsfm.sfm.pairs import coarse_features
-from torchsfm.sfm.sift import sift_features
+from torchsfm.features.sift import sift_features
 from torchsfm.sfm.stages import ViewSet, default_pipeline
 from torchsfm.visualization import write_png
 

@@ -59,7 +59,7 @@ def sobel_second_derivatives(image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return xx, xy, yy
 
 
-def _running_maximum(image: Tensor, width: int, dim: int) -> Tensor:
+def running_maximum(image: Tensor, width: int, dim: int) -> Tensor:
     """Maximum over ``width`` consecutive entries along ``dim`` (valid part: the dimension
     shrinks by width - 1), by doubling spans: log2(width) + 1 comparisons per entry."""
     n = image.shape[dim] - width + 1
@@ -78,4 +78,4 @@ def window_maximum(image: Tensor, radius: int) -> Tensor:
     shape = image.shape
     padded = F.pad(image.reshape(-1, *shape[-2:]), (radius, radius, radius, radius), value=float("-inf"))
     width = 2 * radius + 1
-    return _running_maximum(_running_maximum(padded, width, -1), width, -2).reshape(shape)
+    return running_maximum(running_maximum(padded, width, -1), width, -2).reshape(shape)

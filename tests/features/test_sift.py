@@ -6,7 +6,7 @@ from kornia.feature import SIFTDescriptor, SIFTFeature, extract_patches_from_pyr
 from kornia.geometry.subpix import NonMaximaSuppression2d
 
 from torchsfm.images import to_unit_float
-from torchsfm.sfm.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, SlidingNonMaxima, mutual_ratio_matches, pyramid_patches, \
+from torchsfm.features.sift import DESCRIBED_PER_CALL, InBatches, PooledSIFTDescriptor, SlidingNonMaxima, mutual_ratio_matches, pyramid_patches, \
     sift_features
 
 

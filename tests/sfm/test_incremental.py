@@ -303,7 +303,9 @@ def test_a_video_8_frames_apart_is_joined_by_sift_bridges(shared_data):
 def test_a_frame_past_a_scaffolded_facade_is_tracked_against_the_map(shared_data):
     """KITTI 06 frames 10, 20, 30 (12 m apart, past a scaffolding's repeated texture): most of
     frame 30's ties to the model's points are wrong, so its resection keeps too few inliers even
-    at 8 px and, without tracking, it is left out; tracked against the map (the points searched
+    at 8 px and, without tracking (and without the SIFT bridge, which at seed 0 links it too since
+    the SIFT's patches and pooling were rewritten: all three frames within 0.4 % of the path and
+    0.15°, frame 10 loosely at 4 px), it is left out; tracked against the map (the points searched
     where the pose its few right ties fix puts them) it registers at the 2 px threshold, is
     reported, and its centre lies within 1 % of the path, its rotation within 0.5 degrees. Whether
     the few right ties are drawn is luck: at seeds 1 and 3 of 0-3 every frame registers (frame
@@ -314,8 +316,8 @@ def test_a_frame_past_a_scaffolded_facade_is_tracked_against_the_map(shared_data
     sequence = read_kitti_odometry(shared_data / "kitti_odom_seq06_000-050")
     frames = [10, 20, 30]
     images = [sequence.images[k] for k in frames]
-    without = torchsfm.reconstruct(images, sequence.K[0], config=with_overrides(Config(), ["reconstruction.track_against_map=false"]),
-                                   generator=torch.Generator().manual_seed(0))
+    alone = ["reconstruction.track_against_map=false", "pairs.sift_bridge=false"]  # the bridge is another way in: see above
+    without = torchsfm.reconstruct(images, sequence.K[0], config=with_overrides(Config(), alone), generator=torch.Generator().manual_seed(0))
     assert 2 not in without.view_indices and "resection kept" in without.unregistered[2]
     registered, tracked = 0, 0
     for seed in range(4):

@@ -5,7 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from torchsfm.features.filters import sobel_gradients, sobel_second_derivatives, window_maximum
+from torchsfm.features.filters import central_differences, sobel_gradients, sobel_second_derivatives, window_maximum
 
 SHAPES = [(2, 1, 37, 53), (1, 1, 2, 3), (3, 5, 9)]  # batched, smaller than a kernel, other leading dimensions
 
@@ -21,6 +21,15 @@ def test_sobel_gradients_are_kornias(shape):
     expected = kornia.filters.spatial_gradient(as_batch(image), normalized=True)[:, 0]  # (B, 2, H, W)
     dx, dy = sobel_gradients(image)
     torch.testing.assert_close(torch.stack([as_batch(dx)[:, 0], as_batch(dy)[:, 0]], 1), expected, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", SHAPES)
+def test_central_differences_are_kornias(shape):
+    """Float32 (as the SIFT descriptor uses them): bit for bit Kornia's, the halving being exact."""
+    image = torch.rand(shape, generator=torch.Generator().manual_seed(2))
+    expected = kornia.filters.spatial_gradient(as_batch(image), mode="diff")[:, 0]  # (B, 2, H, W)
+    dx, dy = central_differences(image)
+    assert torch.equal(torch.stack([as_batch(dx)[:, 0], as_batch(dy)[:, 0]], 1), expected)
 
 
 @pytest.mark.parametrize("shape", SHAPES)

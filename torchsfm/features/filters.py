@@ -46,6 +46,15 @@ def sobel_gradients(image: Tensor) -> tuple[Tensor, Tensor]:
     return dx / 8, dy / 8
 
 
+def central_differences(image: Tensor) -> tuple[Tensor, Tensor]:
+    """The derivatives d/dx and d/dy of (..., H, W) images as half the difference of the two
+    neighbours, the border replicated: Kornia's ``spatial_gradient(mode="diff")``; two (..., H, W)
+    tensors."""
+    padded = _replicate(image, 1)
+    H, W = image.shape[-2:]
+    return _difference(padded.narrow(-2, 1, H), -1) * 0.5, _difference(padded.narrow(-1, 1, W), -2) * 0.5
+
+
 def sobel_second_derivatives(image: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The 5×5 second-order Sobel responses xx, xy, yy of (..., H, W) images, unnormalized
     (Kornia's ``spatial_gradient(order=2, normalized=False)``), the border replicated. Each

@@ -15,11 +15,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from kornia.feature import LAFOrienter, SIFTDescriptor, SIFTFeature, get_laf_center, get_laf_orientation, laf_is_filled, \
     set_laf_orientation
-from kornia.filters import spatial_gradient
 from kornia.geometry.subpix import NonMaximaSuppression2d
 from kornia.geometry.transform import pyrdown
 
-from torchsfm.features.filters import running_maximum
+from torchsfm.features.filters import central_differences, running_maximum
 from torchsfm.images import inside_mask, to_unit_float
 from torchsfm.threads import map_in_threads
 
@@ -110,8 +109,7 @@ class PooledSIFTDescriptor(SIFTDescriptor):
         return placed.permute(1, 3, 0, 2).reshape(size * size, cells * cells)
 
     def forward(self, patches: Tensor) -> Tensor:
-        gradient = spatial_gradient(patches, "diff")
-        gx, gy = gradient[:, :, 0], gradient[:, :, 1]
+        gx, gy = central_differences(patches)
         squared = gx * gx + gy * gy
         moving = squared > 0  # a flat pixel has no orientation and adds nothing
         magnitude = torch.where(moving, torch.sqrt(squared + self.eps), 0.0) * self.gk.to(patches.dtype)

@@ -49,7 +49,7 @@ def test_pyramid_patches_are_kornias():
     """Frames of scales that pick each pyramid level of a 240 × 320 image (and one beyond the
     coarsest), turned, anisotropic, and reaching over the border: Kornia's
     ``extract_patches_from_pyramid`` patches up to the rounding of the sampling coordinates
-    (within 2e-4 of grey values in [0, 1])."""
+    (within 1e-4 of grey values in [0, 1]: measured 2.1e-5 here, 6.3e-5 on a Fountain-P11 photo)."""
     g = torch.Generator().manual_seed(3)
     image = torch.nn.functional.interpolate(torch.rand(1, 1, 30, 40, generator=g), size=(240, 320), mode="bicubic")
     count = 60
@@ -60,15 +60,16 @@ def test_pyramid_patches_are_kornias():
     frames[:, ::3, :, 0] *= 1.7  # anisotropic
     for size in (41, 19):
         expected = extract_patches_from_pyramid(image, frames, size)[0]
-        torch.testing.assert_close(pyramid_patches(image, frames[0], size), expected, rtol=0, atol=2e-4)
+        torch.testing.assert_close(pyramid_patches(image, frames[0], size), expected, rtol=0, atol=1e-4)
 
 
 def test_sift_features_match_kornias():
     """On three textured synthetic images, described side by side on two threads: the keypoints of
     Kornia's SIFTFeature itself on each image alone (its filled slots), in the views' order, and its descriptors up
     to the rounding of the patches' coordinates (over a thousand features each, so the descriptor
-    runs in several blocks): every entry within 0.02 (unit-length descriptors; a gradient on an
-    orientation bin's edge can change bins), all but 0.1 % of them within 1e-4."""
+    runs in several blocks): every entry within 3e-3 (unit-length descriptors; a gradient on an
+    orientation bin's edge can change bins; measured 4.6e-4 here, 2.2e-3 on a Fountain-P11 photo), all
+    but 0.1 % of them within 1e-4 (measured 0.035 %)."""
     g = torch.Generator().manual_seed(1)
     greys = [(torch.nn.functional.interpolate(torch.rand(1, 1, 60, 80, generator=g), size=(240, 320), mode="bilinear")[0] * 255)
              .round().to(torch.uint8) for _ in range(3)]
@@ -85,7 +86,7 @@ def test_sift_features_match_kornias():
         filled = laf_is_filled(frames)[0]
         assert torch.equal(view_points, frames[0, filled, :, 2].double())
         difference = (view_descriptors - expected[0, filled]).abs()
-        assert float(difference.max()) < 0.02
+        assert float(difference.max()) < 3e-3
         assert float((difference > 1e-4).double().mean()) < 1e-3
 
 

@@ -1,6 +1,6 @@
 """Numeric helpers the batched engines share: the one guard of every division by a non-negative
-quantity that may be zero, the per-problem choice between two batched tensors, and the one
-conversion to a compressed-sparse-row matrix."""
+quantity that may be zero, the per-problem choice between two batched tensors, and the
+conversions to a compressed-sparse-row matrix."""
 
 from __future__ import annotations
 
@@ -23,6 +23,20 @@ def sparse_rows(x: Tensor) -> Tensor:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
         return x.to_sparse_csr()
+
+
+def sparse_rows_of_transpose(x: Tensor) -> Tensor:
+    """The transpose of a dense (n, m) bool matrix as an (m, n) float32 compressed-sparse-row
+    one, built from its set entries (sorted once by column) rather than by transposing the dense
+    matrix: the work is its set entries, not n · m."""
+    rows, columns = x.nonzero().unbind(1)  # in row order
+    order = torch.sort(columns, stable=True).indices  # column order, row order within a column
+    crow = torch.zeros(x.shape[1] + 1, dtype=torch.long, device=x.device)
+    crow[1:] = torch.bincount(columns, minlength=x.shape[1]).cumsum(0)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return torch.sparse_csr_tensor(crow, rows[order], torch.ones(rows.numel(), device=x.device),
+                                       size=x.shape[::-1], check_invariants=False)
 
 
 def where_per_problem(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:

@@ -506,34 +506,37 @@ def test_int8_products_are_not_chosen_where_the_build_has_none(monkeypatch):
     assert affinity.int8_products_are_faster.__wrapped__() is False
 
 
-@pytest.mark.parametrize("path", ["int8", "float32", "sparse"])
+@pytest.mark.parametrize("path", ["int8", "float32", "sparse", "complement"])
 def test_preference_counts_and_similarity_are_exact(path, monkeypatch):
     """The int8 and the float32 products of 0/1 preference matrices (whichever this CPU runs
-    faster) and the sparse ones (preferences sparser than ``SPARSE_PREFERENCES``: tracks with
-    gaps) equal float64 ones, so the Tanimoto similarity equals its definition
+    faster; the symmetric one by blocks), the sparse ones (preferences sparser than
+    ``SPARSE_PREFERENCES``: tracks with gaps) and the counts of preferences among defined
+    hypotheses as all preferences less a sparse product (undefined entries that sparse: tracks
+    seen throughout) are exact, so the Tanimoto similarity equals its definition
     |p_i ∧ p_j| / |p_i ∨ p_j| over the hypotheses defined for both."""
     from torchsfm.moving import affinity
-    from torchsfm.moving.affinity import binary_operand, binary_products, sparse_binary_products, tanimoto_similarity
+    from torchsfm.moving.affinity import binary_gram, binary_operand, binary_products, tanimoto_similarity
+    from torchsfm.numerics import sparse_rows_of_transpose
 
     monkeypatch.setattr(affinity, "int8_products_are_faster", lambda: path == "int8")
-    monkeypatch.setattr(affinity, "SPARSE_PREFERENCES", 1.0 if path == "sparse" else 0.0)
+    if path != "complement":
+        monkeypatch.setattr(affinity, "SPARSE_PREFERENCES", 1.0 if path == "sparse" else 0.0)
     sparse_calls = []
-    monkeypatch.setattr(affinity, "sparse_binary_products", lambda *args: sparse_calls.append(1) or sparse_binary_products(*args))
+    monkeypatch.setattr(affinity, "sparse_rows_of_transpose",
+                        lambda x: sparse_calls.append(1) or sparse_rows_of_transpose(x))
     g = torch.Generator().manual_seed(3)
-    defined = torch.rand(37, 301, generator=g) < 0.8
-    preference = (torch.rand(37, 301, generator=g) < 0.3) & defined
-    exact = preference.double() @ defined.double().T
-    if path == "sparse":
-        inner, own = sparse_binary_products(preference, [preference, defined])
-        torch.testing.assert_close(inner.double(), preference.double() @ preference.double().T, rtol=0, atol=0)
-        torch.testing.assert_close(own.double(), exact, rtol=0, atol=0)
-    else:
-        assert binary_operand(torch.ones(2, 3, dtype=torch.bool)).dtype == (torch.int8 if path == "int8" else torch.float32)
-        torch.testing.assert_close(binary_products(binary_operand(preference), binary_operand(defined)).double(), exact, rtol=0, atol=0)
+    defined = torch.rand(301, 37, generator=g) < (0.995 if path == "complement" else 0.8)  # (H, N)
+    preference = (torch.rand(301, 37, generator=g) < 0.3) & defined
+    if path in ("int8", "float32"):
+        operand = binary_operand(preference)
+        assert operand.dtype == (torch.int8 if path == "int8" else torch.float32)
+        exact = preference.double().T @ defined.double()
+        torch.testing.assert_close(binary_products(operand, binary_operand(defined)).double(), exact, rtol=0, atol=0)
+        torch.testing.assert_close(binary_gram(operand).double(), preference.double().T @ preference.double(), rtol=0, atol=0)
     similarity = tanimoto_similarity(preference, defined, torch.float64)
-    assert len(sparse_calls) == (path == "sparse")
-    both = defined[:, None] & defined[None]  # (37, 37, 301)
-    p_i, p_j = preference[:, None] & both, preference[None] & both
+    assert len(sparse_calls) == (path in ("sparse", "complement"))
+    both = defined.T[:, None] & defined.T[None]  # (37, 37, 301)
+    p_i, p_j = preference.T[:, None] & both, preference.T[None] & both
     union = (p_i | p_j).sum(-1).double()
     expected = torch.where(union > 0, (p_i & p_j).sum(-1).double() / union.clamp_min(1), 0.0).fill_diagonal_(0.0)
     torch.testing.assert_close(similarity, expected, rtol=1e-6, atol=0)

@@ -16,10 +16,11 @@ from torch import Tensor
 
 from torchsfm.config import SegmentationConfig
 from torchsfm.moving.hypotheses import MODELS
-from torchsfm.numerics import sparse_rows
+from torchsfm.numerics import sparse_rows_of_transpose
 
 SPARSE_PREFERENCES = 0.02  # share of set preference entries below which the Tanimoto counts multiply sparsely (see
 # tanimoto_similarity): 0.5-0.8 % (KITTI 06's tracks, 500-3000 of them) 0.31-0.59x the dense time, 4-8 % (KT3DMoSeg's clips) 0.94-1.65x
+GRAM_BLOCKS = 4  # column blocks of the symmetric preference product (binary_gram)
 
 
 def preference_similarity(tracks: Tensor, visible: Tensor, config: SegmentationConfig, generator: torch.Generator,
@@ -30,20 +31,21 @@ def preference_similarity(tracks: Tensor, visible: Tensor, config: SegmentationC
     that the round's residual tables are freed before the next round's are made."""
     kinds = config.kinds_for(tracks.shape[0])
     fits = [MODELS[name](tracks, visible, config.hypotheses // len(kinds), config, generator, guide) for name in kinds]
-    preferences = [ordered_preferences(residuals, defined, config) for residuals, defined in fits]
+    preferences = torch.cat([ordered_preferences(residuals, defined, config) for residuals, defined in fits])
+    mask = torch.cat([defined for _, defined in fits])
     del fits
-    return tanimoto_similarity(torch.cat([p for p, _ in preferences], 1), torch.cat([d for _, d in preferences], 1), tracks.dtype)
+    return tanimoto_similarity(preferences, mask, tracks.dtype)
 
 
-def ordered_preferences(residuals: Tensor, defined: Tensor, config: SegmentationConfig) -> tuple[Tensor, Tensor]:
-    """(H, N) residuals -> (N, H) bool preferences, each track preferring the ``preference_share``
-    of its defined hypotheses with the smallest residuals (ordered-residual kernel), and the
-    (N, H) bool mask of defined entries."""
+def ordered_preferences(residuals: Tensor, defined: Tensor, config: SegmentationConfig) -> Tensor:
+    """(H, N) residuals and defined mask -> (H, N) bool preferences, each track preferring the
+    ``preference_share`` of its defined hypotheses with the smallest residuals (ordered-residual
+    kernel)."""
     masked = residuals.masked_fill(~defined, torch.inf)  # (H, N)
     keep = (defined.sum(0) * config.preference_share).ceil().long().clamp_min(1)  # (N,)
     smallest = masked.topk(int(keep.max()), dim=0, largest=False).values  # (k, N) ascending
     largest_kept = smallest.gather(0, keep[None] - 1)  # the keep-th smallest of each track
-    return ((masked <= largest_kept) & defined).T, defined.T  # transposed as bools: an eighth of the doubles' bytes
+    return (masked <= largest_kept) & defined
 
 
 def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
@@ -59,28 +61,29 @@ def explained_tracks(similarity: Tensor, config: SegmentationConfig) -> Tensor:
 
 
 def tanimoto_similarity(preference: Tensor, mask: Tensor, dtype: torch.dtype) -> Tensor:
-    """(N, H) bool preferences and defined mask -> (N, N) Tanimoto similarity (``dtype``) over
-    the hypotheses defined for both tracks (zero diagonal). Preferences sparser than
-    ``SPARSE_PREFERENCES`` (tracks with visibility gaps are defined for few hypotheses) multiply
-    as a sparse matrix (:func:`sparse_binary_products`), others densely (:func:`binary_products`):
-    the same counts either way."""
+    """(H, N) bool preferences and defined mask (a row per hypothesis) -> (N, N) Tanimoto
+    similarity (``dtype``) over the hypotheses defined for both tracks (zero diagonal), from the
+    counts |p_i ∧ p_j| and |p_i ∧ D_j| (i's preferences among the hypotheses defined for j) as
+    products over the hypotheses. Preferences sparser than ``SPARSE_PREFERENCES`` (tracks with
+    visibility gaps are defined for few hypotheses) multiply as a sparse matrix, others densely
+    (:func:`binary_products`); where the undefined entries are that sparse instead (tracks seen
+    throughout are undefined only for the hypotheses sampled from them), |p_i ∧ D_j| is
+    |p_i| − |p_i ∧ ¬D_j|, the second term a sparse product. The same counts on every path."""
     if int(preference.sum()) < SPARSE_PREFERENCES * preference.numel():
-        inner, own = sparse_binary_products(preference, [preference, mask])
+        rows = sparse_rows_of_transpose(preference)  # (N, H)
+        inner, own = (torch.sparse.mm(rows, x.float()) for x in (preference, mask))
     else:
-        preference, mask = binary_operand(preference), binary_operand(mask)  # each converted once
-        inner = binary_products(preference, preference)
-        own = binary_products(preference, mask)  # |p_i| restricted to the hypotheses defined for j
+        operand = binary_operand(preference)
+        inner = binary_gram(operand)
+        undefined = ~mask
+        if int(undefined.sum()) < SPARSE_PREFERENCES * undefined.numel():
+            outside = torch.sparse.mm(sparse_rows_of_transpose(undefined), preference.float())  # (N, N): |p_j ∧ ¬D_i| at (i, j)
+            own = outside.T.neg_().add_(preference.sum(0, dtype=torch.float32)[:, None])
+        else:
+            own = binary_products(operand, binary_operand(mask))
     denominator = (own + own.T).sub_(inner)  # >= inner (p_j lies within j's defined mask): 0 only where inner is
     del own  # (N, N) tables: at 3000 tracks each is 36 MB, so they are made in place where they can be
     return inner.div_(denominator.clamp_min_(1.0)).to(dtype).fill_diagonal_(0.0)
-
-
-def sparse_binary_products(a: Tensor, others: list[Tensor]) -> list[Tensor]:
-    """(n, h) bool ``a`` and each (m, h) bool of ``others`` -> the (n, m) float32 counts a @ b.T,
-    exact (up to 2^24), with ``a`` as one compressed-sparse-row matrix: the work is a's nonzeros
-    times m, not n · h · m."""
-    rows = sparse_rows(a.float())
-    return [torch.sparse.mm(rows, b.float().T) for b in others]
 
 
 def binary_operand(x: Tensor) -> Tensor:
@@ -92,21 +95,36 @@ def binary_operand(x: Tensor) -> Tensor:
 
 
 def binary_products(a: Tensor, b: Tensor) -> Tensor:
-    """(n, h) and (m, h) 0/1 matrices from :func:`binary_operand` -> (n, m) float32 counts
-    a @ b.T, exact (up to 2^24)."""
+    """(h, n) and (h, m) 0/1 matrices from :func:`binary_operand` -> (n, m) float32 counts
+    a.T @ b, exact (up to 2^24)."""
     if a.dtype == torch.int8:
-        return torch._int_mm(a, b.T).float()
-    return a @ b.T
+        return torch._int_mm(a.T, b).float()
+    return a.T @ b
+
+
+def binary_gram(a: Tensor) -> Tensor:
+    """(h, n) 0/1 matrix from :func:`binary_operand` -> the (n, n) float32 counts a.T @ a, exact:
+    each of ``GRAM_BLOCKS`` column blocks times the blocks from its own on (the upper block
+    triangle: 5/8 of the whole product's work for 4 blocks; 1000 tracks over 4000 hypotheses
+    47 -> 36 ms), the lower triangle mirrored."""
+    n = a.shape[1]
+    gram = torch.empty(n, n, dtype=torch.float32, device=a.device)
+    edges = [n * i // GRAM_BLOCKS for i in range(GRAM_BLOCKS + 1)]
+    for start, end in zip(edges[:-1], edges[1:]):
+        block = binary_products(a[:, start:end], a[:, start:])  # (end - start, n - start)
+        gram[start:end, start:] = block
+        gram[end:, start:end] = block[:, end - start:].T
+    return gram
 
 
 @functools.cache
 def int8_products_are_faster() -> bool:
     """Whether int8 products with int32 sums beat float32 ones on this CPU, timed once per
-    process on 128 x 1024 operands (best of three each). int8 was measured 5x faster on a CPU
+    process on 1024 x 128 operands (best of three each). int8 was measured 5x faster on a CPU
     with VNNI instructions (when it was introduced) and 27x slower on one with AVX2 only. Both
     are exact on 0/1 counts, so the choice sets the time, never the result. False where this
     build has no CPU int8 products."""
-    operand = torch.rand(128, 1024, generator=torch.Generator().manual_seed(0)) < 0.5
+    operand = torch.rand(1024, 128, generator=torch.Generator().manual_seed(0)) < 0.5
 
     def seconds(a: Tensor) -> float:
         start = time.perf_counter()

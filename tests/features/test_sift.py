@@ -33,16 +33,34 @@ def test_the_pooled_descriptor_is_kornias():
             torch.testing.assert_close(PooledSIFTDescriptor.like(kornia)(patches), kornia(patches), rtol=0, atol=1e-6)
 
 
-def test_sliding_suppression_is_kornias():
-    """Random responses with plateaus (ties are no maxima) on images larger and smaller than the
-    window, odd and even windows, two channels: bit for bit Kornia's suppression, and its mask."""
+def test_sliding_suppression_is_kornias(monkeypatch):
+    """Random responses with plateaus (ties are no maxima), odd and even windows, two channels:
+    bit for bit Kornia's suppression, and its mask, by the sliding maxima where the window fits
+    the image and is at least three pixels both ways; the other windows (one pixel thin, or
+    larger than the image) are handed to Kornia's own code, which the last loop checks by
+    making the sliding maxima fail."""
+    from torchsfm.features import sift
+
     g = torch.Generator().manual_seed(4)
-    for size in ((15, 15), (16, 9), (3, 3), (2, 5), (1, 1)):
-        for shape in ((2, 2, 64, 90), (1, 1, 15, 15), (1, 1, 12, 40), (1, 1, 300, 17)):
-            response = (torch.rand(shape, generator=g) * 20).round()  # whole numbers: many ties
-            kornia = NonMaximaSuppression2d(size)
-            assert torch.equal(SlidingNonMaxima(size)(response), kornia(response))
-            assert torch.equal(SlidingNonMaxima(size)(response, mask_only=True), kornia(response, mask_only=True))
+    shapes = ((2, 2, 64, 90), (1, 1, 15, 15), (1, 1, 12, 40), (1, 1, 300, 17))
+
+    def check(size, shape):
+        response = (torch.rand(shape, generator=g) * 20).round()  # whole numbers: many ties
+        kornia = NonMaximaSuppression2d(size)
+        assert torch.equal(SlidingNonMaxima(size)(response), kornia(response))
+        assert torch.equal(SlidingNonMaxima(size)(response, mask_only=True), kornia(response, mask_only=True))
+
+    sliding = [(size, shape) for size in ((15, 15), (16, 9), (3, 3)) for shape in shapes
+               if shape[-2] >= size[0] and shape[-1] >= size[1]]
+    assert len(sliding) == 9
+    for size, shape in sliding:
+        check(size, shape)
+    def not_handed_over(*_):
+        raise AssertionError("the sliding maxima ran where Kornia's own code should")
+
+    monkeypatch.setattr(sift, "running_maximum", not_handed_over)
+    for size, shape in [((2, 5), shape) for shape in shapes] + [((1, 1), shapes[0]), ((15, 15), shapes[2]), ((16, 9), shapes[2])]:
+        check(size, shape)
 
 
 def test_pyramid_patches_are_kornias():

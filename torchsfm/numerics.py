@@ -4,7 +4,9 @@ conversions to a compressed-sparse-row matrix."""
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor
@@ -19,9 +21,8 @@ def floor_tiny(x: Tensor) -> Tensor:
 def sparse_rows(x: Tensor) -> Tensor:
     """A dense (n, m) matrix as a compressed-sparse-row one (its products with a dense matrix cost
     its nonzeros, and multiply 3x faster than the COO layout's), without PyTorch's warning that
-    the layout is in beta (the products used are tested)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+    the layout is in beta (the products used are tested: :func:`_without_beta_warning`)."""
+    with _without_beta_warning():
         return x.to_sparse_csr()
 
 
@@ -33,10 +34,17 @@ def sparse_rows_of_transpose(x: Tensor) -> Tensor:
     order = torch.sort(columns, stable=True).indices  # column order, row order within a column
     crow = torch.zeros(x.shape[1] + 1, dtype=torch.long, device=x.device)
     crow[1:] = torch.bincount(columns, minlength=x.shape[1]).cumsum(0)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+    with _without_beta_warning():
         return torch.sparse_csr_tensor(crow, rows[order], torch.ones(rows.numel(), device=x.device),
                                        size=x.shape[::-1], check_invariants=False)
+
+
+@contextlib.contextmanager
+def _without_beta_warning() -> Iterator[None]:
+    """PyTorch's warning that the compressed-sparse-row layout is in beta, silenced."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        yield
 
 
 def where_per_problem(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:

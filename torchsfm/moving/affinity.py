@@ -78,7 +78,7 @@ def tanimoto_similarity(preference: Tensor, mask: Tensor, dtype: torch.dtype) ->
         inner = binary_gram(operand)
         undefined = ~mask
         if int(undefined.sum()) < SPARSE_PREFERENCES * undefined.numel():
-            outside = torch.sparse.mm(sparse_rows_of_transpose(undefined), preference.float())  # (N, N): |p_j ∧ ¬D_i| at (i, j)
+            outside = torch.sparse.mm(sparse_rows_of_transpose(undefined), operand.float())  # (N, N): |p_j ∧ ¬D_i| at (i, j)
             own = outside.T.neg_().add_(preference.sum(0, dtype=torch.float32)[:, None])
         else:
             own = binary_products(operand, binary_operand(mask))

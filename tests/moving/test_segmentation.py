@@ -566,6 +566,44 @@ def test_track_residuals_do_not_depend_on_how_many_pairs_are_fitted_at_once(mode
     torch.testing.assert_close(one[judged_one], whole[judged_whole], rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("model", ["fundamental", "homography"])
+def test_track_residuals_measure_every_track_and_fit_only_the_sets(model):
+    """Tracks no set holds weigh nothing in the fits, and the last fits measure them too: the
+    residuals of three sets' tracks over a sequence with gaps are those of the sets' tracks alone
+    (1e-9 px: a fit over fewer columns rounds otherwise) with 300 tracks no set holds appended,
+    half of them up to 10⁶ px away; an appended track is judged wherever it is seen in a pair, its
+    residual finite. Sets with fewer than 8 tracks in
+    every pair are fitted nowhere (no track judged)."""
+    from torchsfm.moving.pair_fits import PAIR_MODELS, frame_pairs, track_residuals, trimmed_pair_fits
+
+    g = torch.Generator().manual_seed(8)
+    F, N, extra = 12, 120, 300
+    base = 600 * torch.rand(N + extra, 2, generator=g, dtype=torch.float64)
+    tracks = torch.stack([base * (1 + 0.01 * f) + f + 0.3 * torch.randn(N + extra, 2, generator=g, dtype=torch.float64)
+                          for f in range(F)])
+    far = torch.arange(N + extra) >= N + extra // 2
+    tracks[:, far] += 1e6 * torch.rand(int(far.sum()), 2, generator=g, dtype=torch.float64)
+    visible = torch.rand(F, N + extra, generator=g) < 0.8
+    members = torch.zeros(3, N + extra, dtype=torch.bool)
+    members[:, :N] = torch.rand(3, N, generator=g) < 0.5
+    pairs = frame_pairs(visible[:, :N])
+    alone, judged_alone = track_residuals(tracks[:, :N], visible[:, :N], members[:, :N], pairs, model)
+    rms, judged = track_residuals(tracks, visible, members, pairs, model)
+    assert bool(judged_alone.all(1).any()) and torch.equal(judged[:, :N], judged_alone)
+    torch.testing.assert_close(rms[:, :N][judged_alone], alone[judged_alone], rtol=0, atol=1e-9)
+    seen_in_a_pair = (visible[pairs[:, 0]] & visible[pairs[:, 1]]).any(0)
+    assert torch.equal(judged[:, N:], seen_in_a_pair[N:].expand(3, -1))
+    assert bool(rms[judged].isfinite().all())
+    x1, x2 = tracks[pairs[:, 0]], tracks[pairs[:, 1]]  # one set's fits: each track at its distance to the last fit
+    seen = members[0] & visible[pairs[:, 0]] & visible[pairs[:, 1]]
+    fits, distances, _ = trimmed_pair_fits(x1, x2, seen, seen.double(), model)
+    torch.testing.assert_close(distances, PAIR_MODELS[model][1](fits, x1, x2), rtol=0, atol=0)
+    few = torch.zeros_like(members)
+    few[:, :7] = True
+    _, judged_few = track_residuals(tracks, visible, few, pairs, model)
+    assert not bool(judged_few.any())
+
+
 @pytest.mark.parametrize("chunk_elements", [2**21, 200])
 def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements, monkeypatch):
     """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,

@@ -604,16 +604,19 @@ def test_track_residuals_measure_every_track_and_fit_only_the_sets(model):
     assert not bool(judged_few.any())
 
 
+@pytest.mark.parametrize("seen_subset", [0.0, 1.0])
 @pytest.mark.parametrize("chunk_elements", [2**21, 200])
-def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements, monkeypatch):
+def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements, seen_subset, monkeypatch):
     """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,
     against the definition written as loops: tracks with visibility gaps, hypotheses sharing
     frame pairs, one unusable sample and one model that is not finite; exact, scored in one
-    block and in blocks of 2 hypotheses (200 // (3 pairs x 30 tracks))."""
+    block and in blocks of 2 hypotheses (200 // (3 pairs x 30 tracks)), each pair's distances
+    taken over every track and over the tracks seen in its first frame only."""
     from torchsfm.moving import hypotheses
     from torchsfm.moving.hypotheses import worst_over_pairs
 
     monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
+    monkeypatch.setattr(hypotheses, "SEEN_SUBSET", seen_subset)
 
     g = torch.Generator().manual_seed(5)
     F, N, H = 6, 30, 9

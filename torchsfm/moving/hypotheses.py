@@ -20,6 +20,9 @@ from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.pair_fits import SAMPLE_SIZE
 from torchsfm.robust.samplers import draws_without_replacement
 
+SEEN_SUBSET = 0.25  # share of the tracks seen in a pair's first frame up to which only they are measured (worst_over_pairs):
+# KITTI 06's clustered tracks (7-14 % seen a frame) F / homography tables 535 -> 305 / 412 -> 286 ms; KT3DMoSeg's clips (56-87 %)
+# 1.2-1.6x slower so (the scattered writes); break-even near 25-35 % on a synthetic 1000-track scene
 CHUNK_ELEMENTS = 2**21  # numbers per hypothesis chunk: memory bounded for thousands of tracks; 16 MB of float64,
 # under glibc's 32 MB ceiling for serving freed blocks again instead of fresh (page-faulting) maps
 
@@ -101,9 +104,9 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     sample's tracks. In blocks of hypotheses whose (h · P, N) table of distances fits
     ``CHUNK_ELEMENTS`` (P = m(m - 1)/2 pairs), the models of a block's hypotheses sharing a
     pair's first frame are scored together on its points (one product for all; a video has up
-    to F²/2 frame pairs but F first frames), each into its own row of the table (with visibility
-    gaps, on the tracks seen in that frame only: KITTI 06's 3 000 clustered tracks' F and
-    homography tables 1.5x as fast); the largest over a hypothesis' P rows is taken per block."""
+    to F²/2 frame pairs but F first frames), each into its own row of the table (on the tracks
+    seen in that frame only where they are at most ``SEEN_SUBSET`` of them: a video of short
+    tracks); the largest over a hypothesis' P rows is taken per block."""
     H, m = frames.shape
     N = tracks.shape[1]
     first, second = torch.triu_indices(m, m, 1, device=frames.device)
@@ -111,24 +114,25 @@ def worst_over_pairs(tracks: Tensor, visible: Tensor, frames: Tensor, sample: Te
     P = a.shape[1]
     models = torch.stack([fit(tracks[a[:, p, None], sample], tracks[b[:, p, None], sample]) for p in range(P)], 1).reshape(-1, 3, 3)
     coordinates = tracks.permute(2, 0, 1).contiguous()  # (2, F, N)
-    gaps = not bool(visible.all())
     worst = tracks.new_empty(H, N)
     block = max(1, CHUNK_ELEMENTS // (P * N))
     for start in range(0, H, block):
         part = slice(start * P, min(H, start + block) * P)  # row h * P + p: hypothesis h on its pair p
         starts, ends, block_models = a.reshape(-1)[part], b.reshape(-1)[part], models[part]
-        per_pair = tracks.new_zeros(starts.numel(), N) if gaps else tracks.new_empty(starts.numel(), N)  # 0 where not seen
+        per_pair = tracks.new_empty(starts.numel(), N)  # 0 where the track is not seen in the pair
         order = starts.argsort()
         firsts, counts = starts[order].unique_consecutive(return_counts=True)
         for i, rows in zip(firsts.tolist(), order.split(counts.tolist())):
             second = ends[rows]
-            if gaps:  # the tracks seen in the first frame only
-                seen = torch.nonzero(visible[i])[:, 0]  # (n,)
+            seen = torch.nonzero(visible[i])[:, 0]  # (n,)
+            if seen.numel() <= SEEN_SUBSET * N:  # the tracks seen in the first frame only
                 unseen = ~visible[second[:, None], seen]  # (h, n)
+                per_pair[rows] = 0.0
                 per_pair[rows[:, None], seen] = distance(block_models[rows], tracks[i, seen],
                                                          coordinates[:, second[:, None], seen]).masked_fill_(unseen, 0.0)
                 continue
-            per_pair[rows] = distance(block_models[rows], tracks[i], coordinates[:, second])
+            unseen = ~(visible[i] & visible[second])  # (h, N)
+            per_pair[rows] = distance(block_models[rows], tracks[i], coordinates[:, second]).masked_fill_(unseen, 0.0)
         worst[start:start + block] = per_pair.view(-1, P, N).amax(1)  # residuals are >= 0 (or NaN)
     seen_in_a_pair = visible[a[:, 0]] & visible[b[:, 0]]  # (H, N)
     for p in range(1, P):

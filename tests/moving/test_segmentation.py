@@ -605,6 +605,43 @@ def test_track_residuals_measure_every_track_and_fit_only_the_sets(model):
 
 
 @pytest.mark.parametrize("seen_subset", [0.0, 1.0])
+@pytest.mark.parametrize("chunk_elements", [2**21, 600])
+def test_affine_residuals_are_distances_to_the_samples_span(chunk_elements, seen_subset, monkeypatch):
+    """Where defined (seen in all of a hypothesis' frames, not one of its sample), a track's
+    affine residual is its squared distance per frame to the affine span of the hypothesis' 4
+    sampled trajectories over its frames (least squares, written directly); defined exactly
+    where that holds for a usable sample. Tracks with visibility gaps, in one chunk and in
+    chunks of 2 hypotheses (600 // (3 × 100 tracks), in the order of their first frames), every track measured and the tracks seen
+    in a chunk only (1e-6 px²: the products round otherwise)."""
+    from torchsfm.moving import hypotheses
+
+    monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
+    monkeypatch.setattr(hypotheses, "SEEN_SUBSET", seen_subset)
+    g = torch.Generator().manual_seed(6)
+    F, N, H = 12, 100, 24
+    tracks = 300 * torch.rand(F, N, 2, generator=g, dtype=torch.float64)
+    visible = torch.rand(F, N, generator=g) < 0.75
+    visible[:, :10] = True  # tracks every sample can be drawn from
+    residual, defined = hypotheses.affine_residuals(tracks, visible, H, SegmentationConfig(affine_frames=4),
+                                                    torch.Generator().manual_seed(1))
+    replay = torch.Generator().manual_seed(1)  # the same draws again: the hypotheses' frames and samples
+    frames, sample, _ = hypotheses.sample_hypotheses(tracks, visible, H, 4, 4, SegmentationConfig(affine_frames=4), replay, None)
+    centred = torch.where(visible[..., None], tracks - tracks[visible].mean(0), 0.0)
+    assert bool(defined.any()) and not torch.equal(frames[:, 0].argsort(), torch.arange(H))  # chunks by first frame differ
+    for h in range(H):
+        trajectories = centred[frames[h]].permute(1, 0, 2).reshape(N, -1)  # (N, 2m)
+        origin = trajectories[sample[h, 0]]
+        span = (trajectories[sample[h, 1:]] - origin).T  # (2m, 3)
+        offsets = trajectories - origin
+        fitted = span @ torch.linalg.lstsq(span, offsets.T).solution
+        expected = (offsets.T - fitted).square().sum(0) / frames.shape[1]
+        seen = visible[frames[h]].all(0)
+        seen[sample[h]] = False
+        assert torch.equal(defined[h], seen) or not bool(defined[h].any())
+        torch.testing.assert_close(residual[h][defined[h]], expected[defined[h]], rtol=1e-9, atol=1e-6)
+
+
+@pytest.mark.parametrize("seen_subset", [0.0, 1.0])
 @pytest.mark.parametrize("chunk_elements", [2**21, 200])
 def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements, seen_subset, monkeypatch):
     """Each hypothesis' largest residual over the pairs of its frames in which a track is seen,

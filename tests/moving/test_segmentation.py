@@ -611,8 +611,8 @@ def test_affine_residuals_are_distances_to_the_samples_span(chunk_elements, seen
     affine residual is its squared distance per frame to the affine span of the hypothesis' 4
     sampled trajectories over its frames (least squares, written directly); defined exactly
     where that holds for a usable sample. Tracks with visibility gaps, in one chunk and in
-    chunks of 2 hypotheses (600 // (3 × 100 tracks), in the order of their first frames), every track measured and the tracks seen
-    in a chunk only (1e-6 px²: the products round otherwise)."""
+    chunks of 2 hypotheses (600 // (3 × 100 tracks), in the order of their first frames), every
+    track measured and the tracks seen in a chunk only (1e-6 px²: the products round otherwise)."""
     from torchsfm.moving import hypotheses
 
     monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)

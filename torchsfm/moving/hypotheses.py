@@ -180,7 +180,7 @@ def affine_residuals(tracks: Tensor, visible: Tensor, count: int, config: Segmen
         t, t_squared = trajectories[:, measured], squares[:, measured]  # (2F, n)
         offset_norm = select[part] @ t_squared - 2 * origin_full[part] @ t + origin_norm[part]
         axes = basis_full[part].transpose(1, 2)  # (h, 3, 2F): one product for all hypotheses
-        projection = (axes.reshape(-1, 2 * F) @ t).view(-1, 3, t.shape[1]).sub_(origin_in_basis[part, :, None])
+        projection = (axes.reshape(-1, 2 * F) @ t).view(axes.shape[0], 3, -1).sub_(origin_in_basis[part, :, None])
         distance = (offset_norm - projection.square_().sum(1)).clamp_min(0) / m
         if subset:
             residual[part[:, None], measured] = distance

@@ -20,9 +20,10 @@ from torchsfm.geometry.normalization import hartley_normalize
 from torchsfm.moving.pair_fits import SAMPLE_SIZE
 from torchsfm.robust.samplers import draws_without_replacement
 
-SEEN_SUBSET = 0.25  # share of the tracks seen in a pair's first frame up to which only they are measured (worst_over_pairs):
-# KITTI 06's clustered tracks (7-14 % seen a frame) F / homography tables 535 -> 305 / 412 -> 286 ms; KT3DMoSeg's clips (56-87 %)
-# 1.2-1.6x slower so (the scattered writes); break-even near 25-35 % on a synthetic 1000-track scene
+SEEN_SUBSET = 0.25  # share of the tracks seen in a pair's first frame (worst_over_pairs) or in a chunk of affine hypotheses'
+# frames (affine_residuals) up to which only they are measured: KITTI 06's clustered tracks (7-14 % seen a frame) F / homography
+# tables 535 -> 305 / 412 -> 286 ms, affine 210-276 -> 52-143 ms; KT3DMoSeg's clips (56-87 %) 1.2-1.6x slower so (the scattered
+# writes); break-even near 25-35 % on a synthetic 1000-track scene
 CHUNK_ELEMENTS = 2**21  # numbers per hypothesis chunk: memory bounded for thousands of tracks; 16 MB of float64,
 # under glibc's 32 MB ceiling for serving freed blocks again instead of fresh (page-faulting) maps
 

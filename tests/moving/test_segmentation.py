@@ -24,6 +24,15 @@ def scene(seed: int, objects: int, **kwargs):
     return synthetic_moving_scene(seed, num_frames=5, num_objects=objects, object_points=60, noise=0.5, **kwargs)
 
 
+def _hypotheses_with(monkeypatch: pytest.MonkeyPatch, chunk_elements: int, seen_subset: float):
+    """The hypotheses module with its block size and seen-track share set for one test."""
+    from torchsfm.moving import hypotheses
+
+    monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
+    monkeypatch.setattr(hypotheses, "SEEN_SUBSET", seen_subset)
+    return hypotheses
+
+
 def _box(count: int, low: list[float], high: list[float], generator: torch.Generator) -> torch.Tensor:
     """(count, 3) points uniform in the box low..high (metres)."""
     low_, high_ = torch.tensor(low, dtype=torch.float64), torch.tensor(high, dtype=torch.float64)
@@ -613,10 +622,7 @@ def test_affine_residuals_are_distances_to_the_samples_span(chunk_elements, seen
     where that holds for a usable sample. Tracks with visibility gaps, in one chunk and in
     chunks of 2 hypotheses (600 // (3 × 100 tracks), in the order of their first frames), every
     track measured and the tracks seen in a chunk only (1e-6 px²: the products round otherwise)."""
-    from torchsfm.moving import hypotheses
-
-    monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
-    monkeypatch.setattr(hypotheses, "SEEN_SUBSET", seen_subset)
+    hypotheses = _hypotheses_with(monkeypatch, chunk_elements, seen_subset)
     g = torch.Generator().manual_seed(6)
     F, N, H = 12, 100, 24
     tracks = 300 * torch.rand(F, N, 2, generator=g, dtype=torch.float64)
@@ -649,11 +655,7 @@ def test_worst_over_pairs_equals_a_loop_over_hypotheses_and_pairs(chunk_elements
     frame pairs, one unusable sample and one model that is not finite; exact, scored in one
     block and in blocks of 2 hypotheses (200 // (3 pairs x 30 tracks)), each pair's distances
     taken over every track and over the tracks seen in its first frame only."""
-    from torchsfm.moving import hypotheses
-    from torchsfm.moving.hypotheses import worst_over_pairs
-
-    monkeypatch.setattr(hypotheses, "CHUNK_ELEMENTS", chunk_elements)
-    monkeypatch.setattr(hypotheses, "SEEN_SUBSET", seen_subset)
+    worst_over_pairs = _hypotheses_with(monkeypatch, chunk_elements, seen_subset).worst_over_pairs
 
     g = torch.Generator().manual_seed(5)
     F, N, H = 6, 30, 9

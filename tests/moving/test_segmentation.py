@@ -897,7 +897,7 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     plane is degenerate and extrapolates 1.27 px (median) off the right half, beyond its 1 px
     bound; the wall's homographies explain that half (median excess measured 0.84) and not the
     moving box (19.4)."""
-    from torchsfm.moving.pair_fits import frame_pairs, plane_residuals, track_residuals
+    from torchsfm.moving.pair_fits import epipolar_residuals, frame_pairs, plane_residuals, track_residuals
     from torchsfm.moving.scene import has_parallax, scene_excess
 
     data = synthetic_moving_scene(4, num_frames=5, num_objects=1, object_points=60, noise=0.5, outlier_fraction=0.0,
@@ -906,7 +906,8 @@ def test_a_scene_without_parallax_is_judged_by_its_homographies():
     background, x = data.labels == 0, data.tracks[0, :, 0]
     left = background & (x <= x[background].median())
     pairs = frame_pairs(visible)
-    assert not has_parallax(plane_residuals(data.tracks, visible, left, pairs), left, SegmentationConfig())
+    assert not has_parallax(plane_residuals(data.tracks, visible, left, pairs), epipolar_residuals(data.tracks, visible, left, pairs),
+                            left, SegmentationConfig())
     sampson, _ = track_residuals(data.tracks, visible, left[None], pairs)
     assert float(sampson[0][background & ~left].median()) > SegmentationConfig().scene_tolerance
     excess = scene_excess(data.tracks, visible, left, pairs, SegmentationConfig(), torch.Generator().manual_seed(0))
@@ -939,15 +940,29 @@ def _plane_and_epipolar(tracks: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
     return plane_residuals(tracks, visible, members, pairs), epipolar_residuals(tracks, visible, members, pairs), members
 
 
-@pytest.mark.parametrize("noise", [0.1, 0.3, 1.0])
-def test_a_flat_wall_has_no_weak_parallax(noise):
+@pytest.mark.parametrize("noise", [0.1, 0.3, 0.6, 1.0])
+def test_a_flat_wall_has_no_parallax_whatever_its_noise(noise):
     """A flat wall: noise alone puts its tracks about twice as far from its homographies as from
-    its F fits (measured 2.09-2.11), and :func:`weak_parallax` says no."""
-    from torchsfm.moving.scene import weak_parallax
+    its F fits (measured 2.09-2.11), and neither :func:`weak_parallax` nor :func:`has_parallax`
+    says parallax — though at 0.6 and 1 px of noise the tracks are 1.2 and 2.0 px (median) from
+    the homographies, beyond the 1 px floor."""
+    from torchsfm.moving.scene import has_parallax, weak_parallax
 
     plane, epipolar, members = _plane_and_epipolar(_wall_tracks(0.0, noise, torch.Generator().manual_seed(0)))
     assert 1.8 < float(plane.median() / epipolar.median()) < 2.5
     assert not weak_parallax(plane, epipolar, members)
+    assert not has_parallax(plane, epipolar, members, SegmentationConfig())
+
+
+@pytest.mark.parametrize("noise", [0.1, 0.6, 1.0])
+def test_a_wall_with_relief_has_parallax_whatever_its_noise(noise):
+    """A wall with 1 m of relief: its parallax (1.8 px from the homographies, median, at 0.1 px
+    of noise) is found under noise of 0.6 and 1 px too, where the tracks' distance to the
+    homographies is mostly noise."""
+    from torchsfm.moving.scene import has_parallax
+
+    plane, epipolar, members = _plane_and_epipolar(_wall_tracks(1.0, noise, torch.Generator().manual_seed(0)))
+    assert has_parallax(plane, epipolar, members, SegmentationConfig())
 
 
 def test_weak_parallax_is_parallax_beyond_the_tracks_own_noise():
@@ -959,7 +974,7 @@ def test_weak_parallax_is_parallax_beyond_the_tracks_own_noise():
     generator = torch.Generator().manual_seed(0)
     _wall_tracks(0.0, 0.1, generator)  # the draws of the flat wall first, as measured
     plane, epipolar, members = _plane_and_epipolar(_wall_tracks(0.2, 0.1, generator))
-    assert weak_parallax(plane, epipolar, members) and not has_parallax(plane, members, SegmentationConfig())
+    assert weak_parallax(plane, epipolar, members) and not has_parallax(plane, epipolar, members, SegmentationConfig())
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -976,6 +991,25 @@ def test_a_room_split_into_its_planes_is_one_scene(shared_data, seed):
     sequence = read_hopkins155(shared_data / "hopkins155_dev" / "2T3RCRT")
     found = segment_motions(sequence.tracks, generator=torch.Generator().manual_seed(seed))
     assert found.num_motions == 3
+    assert misclassification(found.labels, sequence.labels) <= 0.01
+
+
+@pytest.mark.parametrize("name", ["cars6", "kanatani1", "people1"])
+def test_noise_is_not_taken_for_parallax(shared_data, name):
+    """Hopkins155 sequences with 0.5 px of Gaussian noise added to every coordinate: their
+    backgrounds lie about 1 px (median) from one homography per frame pair — noise, no more —
+    where the noise-free tracks lie 0.1-0.2 px. Counted as parallax, the background was judged by
+    its projective reconstruction, which a scene without depth does not determine, and cut into
+    pieces (59-64 % misclassified on cars6 and kanatani1, 13 % on people1); the noise taken out,
+    each background stays one motion."""
+    from torchsfm.io.datasets import read_hopkins155
+
+    sequence = read_hopkins155(next(p for root in ("hopkins155_subset", "hopkins155_dev")
+                                    for p in [shared_data / root / name] if p.is_dir()))
+    noisy = sequence.tracks + 0.5 * torch.randn(sequence.tracks.shape, generator=torch.Generator().manual_seed(1000),
+                                                dtype=sequence.tracks.dtype)
+    found = segment_motions(noisy, sequence.visible, generator=torch.Generator().manual_seed(0))
+    assert found.num_motions == 2
     assert misclassification(found.labels, sequence.labels) <= 0.01
 
 

@@ -219,7 +219,7 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     badly).
     """
     tied = 3 * median_span(visible[:, scene]) >= tracks.shape[0] - 1
-    plane, rms = fits or PairFits.of(tracks, visible, scene, pairs)
+    plane, rms = fits if fits is not None else PairFits.of(tracks, visible, scene, pairs)
     parallax = has_parallax(plane, rms, scene, config)
     if tied and parallax:
         reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
@@ -369,7 +369,7 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     noise neither's fit explains the other by extrapolation.
     ``fits``: the scene's :class:`PairFits`, where the caller has them."""
     scene = labels == 0
-    plane, epipolar = fits or PairFits.of(tracks, visible, scene, pairs)
+    plane, epipolar = fits if fits is not None else PairFits.of(tracks, visible, scene, pairs)
     one_plane = one_plane_motions(tracks, visible, labels, pairs, plane)
     if one_plane:
         return joined_to_scene(labels, one_plane)

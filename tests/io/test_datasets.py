@@ -46,3 +46,23 @@ def test_hopkins155_background_is_the_group_checked_on_the_preview(shared_data, 
 
     sequence = read_hopkins155(shared_data / root / name)
     assert int((sequence.labels == 0).sum()) == background
+
+
+def test_noise_is_added_where_the_tracks_are_seen_only_and_repeats_with_its_seed():
+    """``MotionTracks.with_noise``: Gaussian noise of the given σ (sample standard deviation
+    within 5 % over 20 000 coordinates) on the visible positions; the unseen ones keep their
+    stored value; the same seed, the same noise; the sequence itself unchanged."""
+    from torchsfm.io.datasets import MotionTracks
+
+    tracks = torch.rand(10, 1000, 2, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 640
+    visible = torch.rand(10, 1000, generator=torch.Generator().manual_seed(1)) > 0.1
+    tracks[~visible] = 0.0
+    sequence = MotionTracks(name="s", tracks=tracks.clone(), labels=torch.zeros(1000, dtype=torch.long), image_size=(640, 480),
+                            visible=visible)
+    noisy = sequence.with_noise(0.5, seed=3)
+    difference = noisy.tracks - tracks
+    assert_close(difference[~visible], torch.zeros_like(difference[~visible]), rtol=0, atol=0)
+    assert abs(float(difference[visible].std()) / 0.5 - 1) < 0.05
+    assert_close(sequence.with_noise(0.5, seed=3).tracks, noisy.tracks, rtol=0, atol=0)
+    assert_close(sequence.tracks, tracks, rtol=0, atol=0)
+    assert noisy.labels is sequence.labels and noisy.visible is sequence.visible

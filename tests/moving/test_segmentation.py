@@ -1030,6 +1030,19 @@ def test_pieces_of_one_plane_join_and_a_plane_sliding_over_it_does_not(slide, jo
     assert one_plane_motions(tracks, visible, labels, pairs, plane_residuals(tracks, visible, labels == 0, pairs)) == joined
 
 
+def test_two_frames_join_no_motion_as_one_plane():
+    """Two frames give one homography per set and 2 terms a track: no motion joins the scene by
+    that test there, not even the other half of one wall."""
+    from torchsfm.moving.pair_fits import frame_pairs, plane_residuals
+    from torchsfm.moving.scene import one_plane_motions
+
+    tracks = _wall_tracks(0.0, 0.5, torch.Generator().manual_seed(0))[[0, 10]]
+    labels = (tracks[0, :, 0] > tracks[0, :, 0].median()).long()
+    visible = torch.ones(tracks.shape[:2], dtype=torch.bool)
+    pairs = frame_pairs(visible)
+    assert one_plane_motions(tracks, visible, labels, pairs, plane_residuals(tracks, visible, labels == 0, pairs)) == []
+
+
 @pytest.mark.parametrize("name", ["cars2B", "three-cars"])
 def test_a_distant_background_cut_apart_under_noise_is_one_scene(shared_data, name):
     """Hopkins155 cars2B with 0.5 px of noise added: the clustering cuts its distant background

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
@@ -222,6 +222,13 @@ class MotionTracks:
     def __post_init__(self) -> None:
         if self.visible is None:
             self.visible = torch.ones(self.tracks.shape[:2], dtype=torch.bool)
+
+    def with_noise(self, sigma: float, seed: int = 0) -> MotionTracks:
+        """The sequence with Gaussian noise of ``sigma`` px (seeded by ``seed``) added to each
+        coordinate of every visible position: the view of a noisier tracker, for robustness
+        checks (Hopkins155's tracks lie 0.05-0.2 px from one F per frame pair)."""
+        noise = sigma * torch.randn(self.tracks.shape, generator=torch.Generator().manual_seed(seed), dtype=self.tracks.dtype)
+        return replace(self, tracks=torch.where(self.visible[..., None], self.tracks + noise, self.tracks))
 
 
 def _load_mat(path: Path) -> dict:

@@ -954,6 +954,17 @@ def test_a_flat_wall_has_no_parallax_whatever_its_noise(noise):
     assert not has_parallax(plane, epipolar, members, SegmentationConfig())
 
 
+def test_parallax_without_an_f_fit_is_judged_by_the_floor():
+    """Tracks 2 px (median) from their homographies whose F fits failed (NaN: too few tracks in
+    every pair for 8 points): the noise is unknown, and beyond the 1 px floor is parallax."""
+    from torchsfm.moving.scene import has_parallax
+
+    members = torch.ones(20, dtype=torch.bool)
+    plane, epipolar = torch.full((20,), 2.0, dtype=torch.float64), torch.full((20,), float("nan"), dtype=torch.float64)
+    assert has_parallax(plane, epipolar, members, SegmentationConfig())
+    assert not has_parallax(plane / 4, epipolar, members, SegmentationConfig())
+
+
 @pytest.mark.parametrize("noise", [0.1, 0.6, 1.0])
 def test_a_wall_with_relief_has_parallax_whatever_its_noise(noise):
     """A wall with 1 m of relief: its parallax (1.8 px from the homographies, median, at 0.1 px

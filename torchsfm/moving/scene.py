@@ -327,8 +327,10 @@ def has_parallax(plane: Tensor, epipolar: Tensor, members: Tensor, config: Segme
     depth. Noise is taken out, for it alone reaches the floor: tracks with 0.5 px of noise per
     coordinate are about 1 px from any homography (Hopkins155 with that noise added: traffic
     scenes seen from afar counted as having parallax, and their projective reconstructions cut
-    the background apart)."""
-    plane_median, noise = float(plane[members].nanmedian()), NOISE_PLANE_RATIO * float(epipolar[members].nanmedian())
+    the background apart). Where no F could be fitted (e NaN: fewer than 8 of the tracks in every
+    frame pair), the noise is unknown and the floor alone decides."""
+    plane_median, epipolar_median = float(plane[members].nanmedian()), float(epipolar[members].nanmedian())
+    noise = NOISE_PLANE_RATIO * epipolar_median if math.isfinite(epipolar_median) else 0.0
     return plane_median ** 2 - noise ** 2 > config.scene_tolerance ** 2
 
 

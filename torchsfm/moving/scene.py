@@ -30,7 +30,7 @@ COVERAGE_GRID = 8
 NOISE_PLANE_RATIO = 2.0  # noise alone puts a plane's tracks 2x as far from its homographies (transfer distance,
 # noise in both images: 2σ RMS) as from its F fits (Sampson distance: σ); measured 2.09-2.15 on synthetic planes at σ = 0.1-1 px
 WEAK_PARALLAX_RATIO = 3.0  # leaves parallax of √5 σ RMS beyond the noise: the plane explains the tracks measurably worse than F
-UNION_DEVIATIONS = 3.0  # standard deviations of a median residual that one plane motion for two track sets may add (join_one_plane)
+UNION_DEVIATIONS = 3.0  # standard deviations of a median residual that one plane motion for two track sets may add (one_plane_motions)
 
 
 class PairFits(NamedTuple):
@@ -361,8 +361,8 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     tracks it still holds can fail to explain the rest of the background, which the clustering
     split off as a motion of its own, while that clean half's fit explains the scene.
     Only for a scene its homographies do not explain to within the tracker's floor (median
-    distance; noise beyond the floor counts, as it did before :func:`has_parallax` took it out:
-    Hopkins155 1R2RC with 0.5 px of noise added kept a piece of its background apart without it)
+    distance, noise included — not :func:`has_parallax`, which takes the noise out: with it,
+    Hopkins155 1R2RC with 0.5 px of noise added kept a piece of its background apart)
     or with parallax beyond its own noise (:func:`weak_parallax`): a camera that only turns, a plane or a
     distant scene is explained by any motion that shares the camera's rotation (as points at
     infinity), so the test would say nothing. Motions of fewer than 12 tracks are not fitted.
@@ -391,8 +391,8 @@ def one_plane_motions(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Te
     per frame pair explains together with the scene (label 0) as well as each alone: for both
     sets, the median over its tracks of their squared RMS transfer distance under the union's
     homographies over that under its own (the scene's: the (N,) :func:`plane_residuals`
-    ``plane``) is at most its expectation, (1 − 4 / n∪) / (1 − 4 / n) for n tracks (8 parameters
-    a pair absorb 8 of every n tracks' 2n terms), times 1 + ``UNION_DEVIATIONS`` standard
+    ``plane``) is at most its expectation, (1 − 4 / n∪) / (1 − 4 / n) for n tracks (each pair's
+    homography absorbs 8 of the set's 2n terms in that pair), times 1 + ``UNION_DEVIATIONS`` standard
     deviations of such a median: sqrt(π / 2) · sqrt(2 / k) / sqrt(n), for squared RMS of k terms
     (2 per frame pair a track is seen in; median over the set), a χ²(k) / k each. A test of the
     sets' medians, not of single tracks against a bound: pieces of one background keep the

@@ -1017,8 +1017,7 @@ def test_noise_is_not_taken_for_parallax(shared_data, name):
 
     sequence = read_hopkins155(next(p for root in ("hopkins155_subset", "hopkins155_dev")
                                     for p in [shared_data / root / name] if p.is_dir()))
-    noisy = sequence.tracks + 0.5 * torch.randn(sequence.tracks.shape, generator=torch.Generator().manual_seed(1000),
-                                                dtype=sequence.tracks.dtype)
+    noisy = sequence.with_noise(0.5, seed=1000).tracks
     found = segment_motions(noisy, sequence.visible, generator=torch.Generator().manual_seed(0))
     assert found.num_motions == 2
     assert misclassification(found.labels, sequence.labels) <= 0.01
@@ -1064,8 +1063,7 @@ def test_a_distant_background_cut_apart_under_noise_is_one_scene(shared_data, na
     from torchsfm.io.datasets import read_hopkins155
 
     sequence = read_hopkins155(shared_data / "hopkins155_dev" / name)
-    noisy = sequence.tracks + 0.5 * torch.randn(sequence.tracks.shape, generator=torch.Generator().manual_seed(1000),
-                                                dtype=sequence.tracks.dtype)
+    noisy = sequence.with_noise(0.5, seed=1000).tracks
     found = segment_motions(noisy, sequence.visible, generator=torch.Generator().manual_seed(0))
     assert found.num_motions == 3
     assert misclassification(found.labels, sequence.labels) <= 0.01

@@ -269,7 +269,7 @@ def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Te
     (``config.scene_tolerance``) stays within for as many frame pairs (> 1: beyond). Only for a
     scene with parallax (zeros without: the pose's translation is noise; ``fits``: the scene's
     :class:`PairFits`)."""
-    if not has_parallax(*fits, scene, config):
+    if not has_parallax(fits.plane, fits.epipolar, scene, config):
         return torch.zeros(tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
     return beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)
 

@@ -156,9 +156,10 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         scene = (labels == 0) & ~cut
         if excess is None:
             excess = scene_excess(tracks, visible, scene, pairs, config, generator, fits_of(scene))
+            transfer = homography_excess(visible, scene, pairs, config, fits_of(scene))
             if behind is not None:
                 excess = with_depth_order(excess, behind)
-        labels = torch.where(cut, 0, join_explained(torch.where(cut, -1, labels), excess))
+        labels = torch.where(cut, 0, join_explained(torch.where(cut, -1, labels), excess, transfer))
         if not bool(cut.any()) and behind is None:  # before any cut: a motion whose own fit explains the scene joins it, and the scene is fitted anew
             joined = join_explaining(tracks, visible, labels, pairs, config, generator, fits_of(labels == 0))
             if int(joined.max()) < int(labels.max()):
@@ -186,7 +187,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     rigid = noise_explained(tracks, visible, members, config)
     labels[clustered[position]] = torch.where(rigid[bodies], int(labels.max()) + rigid.cumsum(0)[bodies], -1)
     # the scene that judged the cut pieces held them: its last fit, without them, may explain one after all
-    return join_explained(labels, excess)
+    return join_explained(labels, excess, transfer)
 
 
 def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
@@ -230,7 +231,7 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     if parallax:
         return excess
     # no parallax: the scene's homographies are its motion, and its F fits are degenerate
-    excess = torch.fmin(excess, plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config))
+    excess = torch.fmin(excess, _transfer_excess(plane, scene, seen, config))
     if not (tied and weak_parallax(plane, rms, scene)):
         return excess
     # parallax beyond the scene's own noise: its reconstruction is one more way a static track is explained
@@ -346,11 +347,32 @@ def _noise_bound(seen: Tensor, config: SegmentationConfig) -> Tensor:
     return _bound(floor, seen, seen, config)
 
 
-def join_explained(labels: Tensor, excess: Tensor) -> Tensor:
+def homography_excess(visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
+                      fits: PairFits) -> Tensor | None:
+    """(N,) every track's RMS transfer distance to the (N,) bool ``scene`` tracks' homographies
+    (``fits.plane``) over its bound (d = 2n for n frame pairs; NaN where not judged), where the
+    scene has no parallax (:func:`has_parallax`); None where it has. Such a scene moves by one
+    homography per frame pair, and a motion that is part of it moves by them too."""
+    if has_parallax(fits.plane, fits.epipolar, scene, config):
+        return None
+    return _transfer_excess(fits.plane, scene, pairs_seen(visible, pairs), config)
+
+
+def _transfer_excess(plane: Tensor, scene: Tensor, seen: Tensor, config: SegmentationConfig) -> Tensor:
+    """(N,) (N,) :func:`plane_residuals` over their bound, σ the ``scene`` tracks' median, for
+    tracks seen in (N,) ``seen`` frame pairs (2 terms each)."""
+    return plane / _bound(plane[scene].nanmedian(), 2 * seen, 2 * seen, config)
+
+
+def join_explained(labels: Tensor, excess: Tensor, transfer: Tensor | None = None) -> Tensor:
     """(N,) labels with every motion that the scene's rigid motion explains (median (N,)
-    :func:`scene_excess` at most 1) joined to the scene (label 0), renumbered."""
+    :func:`scene_excess` ``excess`` at most 1) joined to the scene (label 0), renumbered. Given
+    the scene's (N,) :func:`homography_excess` ``transfer`` (a scene without parallax), the
+    median of that must be at most 1 too: the lesser of F and homography that the excess takes
+    there lets a body whose motion stays near the scene's degenerate F join it."""
     return joined_to_scene(labels, [motion for motion in range(1, int(labels.max()) + 1)
-                                    if bool(excess[labels == motion].nanmedian() <= 1)])
+                                    if bool(excess[labels == motion].nanmedian() <= 1)
+                                    and (transfer is None or bool(transfer[labels == motion].nanmedian() <= 1))])
 
 
 def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tensor, config: SegmentationConfig,

@@ -66,3 +66,20 @@ def test_noise_is_added_where_the_tracks_are_seen_only_and_repeats_with_its_seed
     assert_close(sequence.with_noise(0.5, seed=3).tracks, noisy.tracks, rtol=0, atol=0)
     assert_close(sequence.tracks, tracks, rtol=0, atol=0)
     assert noisy.labels is sequence.labels and noisy.visible is sequence.visible
+
+
+def test_a_sequence_on_some_frames_keeps_the_tracks_seen_in_three_of_them():
+    """``MotionTracks.on_frames``: the tracks, labels and visibility of the frames given (in
+    their order), without the tracks seen in fewer than ``min_seen`` of them."""
+    from torchsfm.io.datasets import MotionTracks
+
+    tracks = torch.arange(6 * 4 * 2, dtype=torch.float64).reshape(6, 4, 2)
+    visible = torch.ones(6, 4, dtype=torch.bool)
+    visible[:, 1] = torch.tensor([True, False, True, False, False, True])  # seen in 2 of frames 0, 2, 4
+    visible[:, 3] = torch.tensor([False, True, False, True, False, True])  # seen in none of them
+    sequence = MotionTracks(name="s", tracks=tracks, labels=torch.tensor([0, 1, 2, 3]), image_size=(640, 480), visible=visible)
+    cut = sequence.on_frames(torch.tensor([0, 2, 4]))
+    assert_close(cut.tracks, tracks[[0, 2, 4]][:, [0, 2]], rtol=0, atol=0)
+    assert_close(cut.labels, torch.tensor([0, 2]), rtol=0, atol=0)
+    assert cut.visible.shape == (3, 2) and bool(cut.visible.all())
+    assert_close(sequence.on_frames(torch.tensor([0, 2, 4]), min_seen=2).labels, torch.tensor([0, 1, 2]), rtol=0, atol=0)

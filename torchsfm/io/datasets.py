@@ -230,6 +230,15 @@ class MotionTracks:
         noise = sigma * torch.randn(self.tracks.shape, generator=torch.Generator().manual_seed(seed), dtype=self.tracks.dtype)
         return replace(self, tracks=torch.where(self.visible[..., None], self.tracks + noise, self.tracks))
 
+    def on_frames(self, frames: Tensor, min_seen: int = 3) -> MotionTracks:
+        """The sequence on the (F',) ``frames`` only (indices, in that order), keeping the tracks
+        seen in at least ``min_seen`` of them (the others could not be judged): a shorter
+        sequence or a lower frame rate, for robustness checks."""
+        frames = torch.as_tensor(frames, dtype=torch.long)
+        visible = self.visible[frames]
+        kept = visible.sum(0) >= min_seen
+        return replace(self, tracks=self.tracks[frames][:, kept], labels=self.labels[kept], visible=visible[:, kept])
+
 
 def _load_mat(path: Path) -> dict:
     """A MATLAB v5 file (needs SciPy)."""

@@ -30,7 +30,7 @@ first (``MotionTracks.with_noise``): how the figures hold for a tracker noisier 
 sets' (Hopkins155's tracks lie 0.05-0.2 px from one F per frame pair).
 
 With ``--frames first-half`` (or ``every-other``), each sequence is cut to the first half of its
-frames (or to every other frame; ``MotionTracks.on_frames``, the tracks seen in fewer than 3 of
+frames (or to every other frame; ``MotionTracks.cut``, the tracks seen in fewer than 3 of
 them dropped; two-view sets as they are): how the figures hold on shorter sequences, with less
 motion between their ends, and at a lower frame rate.
 
@@ -52,17 +52,12 @@ import torch
 
 from torchsfm.config import Config, with_overrides
 from torchsfm.evaluation import misclassification
-from torchsfm.io.datasets import MotionTracks, read_adelaidermf, read_hopkins155, read_kt3dmoseg
+from torchsfm.io.datasets import FRAME_CUTS, MotionTracks, read_adelaidermf, read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.segmentation import segment_motions
 from torchsfm.visualization import segmentation_figure, write_png
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NON_RIGID = {"arm", "articulated", "dancing"}
-FRAMES = {  # frame count -> the frames kept (--frames)
-    "all": None,
-    "first-half": lambda count: torch.arange(max(count // 2, 3)),
-    "every-other": lambda count: torch.arange(0, count, 2),
-}
 
 
 def sequences(data: Path) -> list[tuple[str, MotionTracks]]:
@@ -133,7 +128,7 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=1, help="run seeds seed .. seed + seeds - 1; figures are means over them")
     parser.add_argument("--noise", type=float, default=0.0,
                         help="Gaussian noise (px, seeded) added to every tracked position: a noisier tracker's view")
-    parser.add_argument("--frames", choices=sorted(FRAMES), default="all",
+    parser.add_argument("--frames", choices=sorted(FRAME_CUTS), default="all",
                         help="cut each sequence to the first half of its frames or every other frame")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                         help="config overrides, e.g. segmentation.models=fundamental,affine")
@@ -144,8 +139,7 @@ def main() -> None:
     print(f"{'data set':14s} {'sequence':16s} {'F':>3s} {'N':>5s} {'k':>2s} {'found':>5s} "
           f"{'found %':>8s} {'given %':>8s} {'OpenCV %':>9s} {'s':>6s}")
     for name, sequence in sequences(args.data):
-        if args.frames != "all" and sequence.tracks.shape[0] > 2:  # two views (AdelaideRMF) stay as they are
-            sequence = sequence.on_frames(FRAMES[args.frames](sequence.tracks.shape[0]))
+        sequence = sequence.cut(args.frames)
         sequence = sequence.with_noise(args.noise) if args.noise else sequence
         truth = sequence.labels
         motions = int(truth.max()) + 1

@@ -32,8 +32,11 @@ tracks, an untested track counting as rejected. Pooled figures per data set at t
 seconds of the whole-track calls (``triplets``, ``rigid_groups`` and ``both`` come from one call;
 ``segmentation`` is a second one). ``--noise SIGMA`` adds Gaussian noise of SIGMA px (seeded) to
 every tracked position first (``MotionTracks.with_noise``): a tracker noisier than these data sets'.
+``--frames first-half`` (or ``every-other``) cuts each sequence to the first half of its frames (or
+to every other frame; ``MotionTracks.cut``, the tracks seen in fewer than 3 of them dropped): a
+shorter sequence, with less motion between its ends, or a lower frame rate.
 
-    python examples/moving_objects_real.py [--data ../shared/data] [--seed 0] [--noise 0]
+    python examples/moving_objects_real.py [--data ../shared/data] [--seed 0] [--noise 0] [--frames all|first-half|every-other]
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from pathlib import Path
 import torch
 
 from torchsfm.config import Config, with_overrides
-from torchsfm.io.datasets import MotionTracks, read_hopkins155, read_kt3dmoseg
+from torchsfm.io.datasets import FRAME_CUTS, MotionTracks, read_hopkins155, read_kt3dmoseg
 from torchsfm.moving.imor import CASCADE_PAIRS, reject_moving_objects
 from torchsfm.moving.pair_fits import trimmed_pair_fits
 from torchsfm.moving.whole_track import reject_moving_objects_in_tracks
@@ -132,12 +135,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of every random choice (the figures vary with it)")
     parser.add_argument("--noise", type=float, default=0.0,
                         help="Gaussian noise (px, seeded) added to every tracked position: a noisier tracker's view")
+    parser.add_argument("--frames", choices=sorted(FRAME_CUTS), default="all",
+                        help="cut each sequence to the first half of its frames or every other frame")
     args = parser.parse_args()
     config = with_overrides(Config(), ["moving_objects.track_method=both"])
     sets = {
         "Hopkins155 (translating camera)": [read_hopkins155(folder) for folder in translating_hopkins(args.data)],
         "KT3DMoSeg": [read_kt3dmoseg(folder) for folder in sorted((args.data / "kt3dmoseg_dev").glob("*_Tracks"))],
     }
+    sets = {title: [sequence.cut(args.frames) for sequence in sequences] for title, sequences in sets.items()}
     if args.noise:
         sets = {title: [sequence.with_noise(args.noise) for sequence in sequences] for title, sequences in sets.items()}
     header = " | ".join(f"{m:>15s}" for m in METHODS)

@@ -83,3 +83,22 @@ def test_a_sequence_on_some_frames_keeps_the_tracks_seen_in_three_of_them():
     assert_close(cut.labels, torch.tensor([0, 2]), rtol=0, atol=0)
     assert cut.visible.shape == (3, 2) and bool(cut.visible.all())
     assert_close(sequence.on_frames(torch.tensor([0, 2, 4]), min_seen=2).labels, torch.tensor([0, 1, 2]), rtol=0, atol=0)
+
+
+def test_named_frame_cuts_keep_the_first_half_or_every_other_frame_and_two_views_whole():
+    """``MotionTracks.cut``: ``first-half`` keeps frames 0..F//2-1 (at least 3), ``every-other``
+    the even ones, ``all`` the sequence itself; two views stay as they are; another name is an
+    InputError naming the choices."""
+    from torchsfm.errors import InputError
+    from torchsfm.io.datasets import MotionTracks
+
+    tracks = torch.arange(10 * 5 * 2, dtype=torch.float64).reshape(10, 5, 2)
+    sequence = MotionTracks(name="s", tracks=tracks, labels=torch.zeros(5, dtype=torch.long), image_size=(640, 480))
+    assert_close(sequence.cut("first-half").tracks, tracks[:5], rtol=0, atol=0)
+    assert_close(sequence.cut("every-other").tracks, tracks[::2], rtol=0, atol=0)
+    assert sequence.cut("all") is sequence
+    assert sequence.on_frames(torch.tensor([0, 1, 2, 3])).cut("first-half").tracks.shape[0] == 3
+    two_views = sequence.on_frames(torch.tensor([0, 9]), min_seen=2)
+    assert two_views.cut("every-other") is two_views
+    with pytest.raises(InputError, match="first-half"):
+        sequence.cut("last-half")

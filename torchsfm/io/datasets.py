@@ -199,6 +199,13 @@ def ground_truth_pairs(data: str | Path) -> list[GroundTruthPair]:
 HOPKINS_BACKGROUND_GROUP = {"cars1": 2, "truck1": 2, "kanatani1": 1, "1R2RC": 3, "cars8": 1}
 
 
+FRAME_CUTS = {  # MotionTracks.cut: frame count -> the frames kept
+    "all": torch.arange,
+    "first-half": lambda count: torch.arange(max(count // 2, 3)),  # a shorter sequence, less motion between its ends
+    "every-other": lambda count: torch.arange(0, count, 2),  # half the frame rate
+}
+
+
 @dataclass
 class MotionTracks:
     """Points tracked over F frames with per-point motion labels.
@@ -229,6 +236,15 @@ class MotionTracks:
         checks (Hopkins155's tracks lie 0.05-0.2 px from one F per frame pair)."""
         noise = sigma * torch.randn(self.tracks.shape, generator=torch.Generator().manual_seed(seed), dtype=self.tracks.dtype)
         return replace(self, tracks=torch.where(self.visible[..., None], self.tracks + noise, self.tracks))
+
+    def cut(self, frames: str) -> MotionTracks:
+        """The sequence on the frames ``frames`` names (:data:`FRAME_CUTS`: ``all``, ``first-half``
+        — at least 3 —, ``every-other``; :meth:`on_frames`); two views stay as they are."""
+        if frames not in FRAME_CUTS:
+            raise InputError(f"frames must be one of {sorted(FRAME_CUTS)}, got {frames!r}")
+        if frames == "all" or self.tracks.shape[0] <= 2:
+            return self
+        return self.on_frames(FRAME_CUTS[frames](self.tracks.shape[0]))
 
     def on_frames(self, frames: Tensor, min_seen: int = 3) -> MotionTracks:
         """The sequence on the (F',) ``frames`` only (indices, in that order), keeping the tracks

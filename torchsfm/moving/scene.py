@@ -106,7 +106,8 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     nearly agrees over the sampled frames (a car driving along the camera's direction), and may
     split a scene of several planes. Every track's residual under the scene's rigid motion is
     weighed against its noise bound (:func:`scene_excess`): a motion with at most half its
-    tracks beyond it joins the scene, and so does, before anything is cut, a motion whose own
+    tracks beyond it joins the scene (for a scene without parallax, at most half beyond its
+    homographies' bound too, :func:`homography_excess`), and so does, before anything is cut, a motion whose own
     rigid motion explains the scene (:func:`join_explaining`); a piece of the scene (:attr:`MotionSegmentation.pieces`)
     with more than half its tracks beyond it is cut. The scene without the cut pieces judges the
     motions and its pieces again, until it cuts nothing more: a fit over a scene that still holds

@@ -87,8 +87,8 @@ def test_a_sequence_on_some_frames_keeps_the_tracks_seen_in_three_of_them():
 
 def test_named_frame_cuts_keep_the_first_half_or_every_other_frame_and_two_views_whole():
     """``MotionTracks.cut``: ``first-half`` keeps frames 0..F//2-1 (at least 3), ``every-other``
-    the even ones, ``all`` the sequence itself; two views stay as they are; another name is an
-    InputError naming the choices."""
+    the even ones, ``all`` the sequence itself; two views stay as they are; another name, or a
+    cut that leaves fewer than 3 frames, is an InputError."""
     from torchsfm.errors import InputError
     from torchsfm.io.datasets import MotionTracks
 
@@ -102,3 +102,5 @@ def test_named_frame_cuts_keep_the_first_half_or_every_other_frame_and_two_views
     assert two_views.cut("every-other") is two_views
     with pytest.raises(InputError, match="first-half"):
         sequence.cut("last-half")
+    with pytest.raises(InputError, match="fewer than 3"):
+        sequence.on_frames(torch.tensor([0, 1, 2, 3])).cut("every-other")

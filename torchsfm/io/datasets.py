@@ -239,12 +239,16 @@ class MotionTracks:
 
     def cut(self, frames: str) -> MotionTracks:
         """The sequence on the frames ``frames`` names (:data:`FRAME_CUTS`: ``all``, ``first-half``
-        — at least 3 —, ``every-other``; :meth:`on_frames`); two views stay as they are."""
+        — at least 3 —, ``every-other``; :meth:`on_frames`); two views stay as they are, and a cut
+        that leaves fewer than 3 frames is an InputError."""
         if frames not in FRAME_CUTS:
             raise InputError(f"frames must be one of {sorted(FRAME_CUTS)}, got {frames!r}")
         if frames == "all" or self.tracks.shape[0] <= 2:
             return self
-        return self.on_frames(FRAME_CUTS[frames](self.tracks.shape[0]))
+        kept = FRAME_CUTS[frames](self.tracks.shape[0])
+        if kept.numel() < 3:
+            raise InputError(f"{self.name}: {frames} of its {self.tracks.shape[0]} frames leaves {kept.numel()}, fewer than 3")
+        return self.on_frames(kept)
 
     def on_frames(self, frames: Tensor, min_seen: int = 3) -> MotionTracks:
         """The sequence on the (F',) ``frames`` only (indices, in that order), keeping the tracks

@@ -109,9 +109,10 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     tracks beyond it joins the scene (for a scene without parallax, at most half beyond its
     homographies' bound too, :func:`homography_excess`), and so does, before anything is cut, a
     motion whose own rigid motion explains the scene (:func:`join_explaining`); a piece of the
-    scene (:attr:`MotionSegmentation.pieces`) with more than half its tracks beyond it is cut. The scene without the cut pieces judges the
-    motions and its pieces again, until it cuts nothing more: a fit over a scene that still holds
-    a body's pieces is pulled towards them and explains some. Then the last fit's excess is raised
+    scene (:attr:`MotionSegmentation.pieces`) with more than half its tracks beyond it is cut.
+    The scene without the cut pieces judges the motions and its pieces again, until it cuts
+    nothing more: a fit over a scene that still holds a body's pieces is pulled towards them and
+    explains some. Then the last fit's excess is raised
     by the depth order (:func:`depth_order_excess` of that fit's pose, :func:`with_depth_order`)
     and the cutting goes on until it cuts nothing more: only then, for a pose fitted together
     with a body it explains misplaces infinity (measured on a synthetic scene of two bodies: with

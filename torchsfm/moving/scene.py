@@ -285,32 +285,53 @@ def with_depth_order(excess: Tensor, behind: Tensor) -> Tensor:
 def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor) -> Tensor:
     """(N,) every track's RMS over the frame pairs it is seen in of how far (pixels) it lies
     beyond infinity under the (N,) bool ``scene`` tracks' relative pose — behind both cameras,
-    which no static point can be (:func:`~torchsfm.geometry.essential.parallax_from_infinity`;
-    0 where in front). The scene's F per pair (least-trimmed squares, as :func:`track_residuals`)
-    becomes a pose through the prior K of a camera without calibration (focal length
-    ``FOCAL_PRIOR`` × the larger side of the tracks' extent, principal point at its centre). The
-    sign of a track's parallax hardly depends on it where the camera mostly translates, and more
-    where it turns (measured with the true background as the scene, focal length 0.6, 1.2 and 2.0 ×
-    the side: on KT3DMoSeg nearly the same tracks beyond 4 px at all three; on Hopkins155 at most
-    3 background tracks of a sequence beyond 4 px at 1.2 ×, up to 13 at 0.6 × and 15 at 2.0 ×).
-    The parallax counts as a distance of the track in both images together (÷ √2), the measure of
-    the Sampson distance, so the same noise bound applies."""
+    which no static point can be (:func:`parallax_under_pose`; 0 where in front)."""
+    parallax, counted = parallax_under_pose(tracks, visible, scene, pairs)
+    return _pair_rms(parallax.neg().clamp_min(0), counted)
+
+
+def in_front(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+    """(N,) every track's RMS over the frame pairs it is seen in of how far (pixels) it lies
+    from infinity towards the cameras under the (N,) bool ``members`` tracks' relative pose
+    (:func:`parallax_under_pose`; 0 where at or beyond infinity): the depth a static point of
+    that motion's frame shows."""
+    parallax, counted = parallax_under_pose(tracks, visible, members, pairs)
+    return _pair_rms(parallax.clamp_min(0), counted)
+
+
+def _pair_rms(values: Tensor, counted: Tensor) -> Tensor:
+    """(N,) RMS over the (P, N) ``counted`` frame pairs of (P, N) ``values``."""
+    return (torch.where(counted, values.square(), 0.0).sum(0) / counted.sum(0).clamp_min(1)).sqrt()
+
+
+def parallax_under_pose(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor]:
+    """(P, N) every track's signed parallax (pixels) along its epipolar line from where its point
+    at infinity would be seen, under the (N,) bool ``members`` tracks' relative pose in each of the
+    P frame ``pairs`` (:func:`~torchsfm.geometry.essential.parallax_from_infinity`: positive in
+    front of both cameras, negative beyond infinity), and (P, N) bool where it counts (seen in
+    both frames of a pair whose fit stood). The members' F per pair (least-trimmed squares, as
+    :func:`track_residuals`) becomes a pose through the prior K of a camera without calibration
+    (focal length ``FOCAL_PRIOR`` × the larger side of the tracks' extent, principal point at its
+    centre). The sign of a track's parallax hardly depends on it where the camera mostly
+    translates, and more where it turns (measured with the true background as the scene, focal
+    length 0.6, 1.2 and 2.0 × the side: on KT3DMoSeg nearly the same tracks beyond 4 px at all
+    three; on Hopkins155 at most 3 background tracks of a sequence beyond 4 px at 1.2 ×, up to 13
+    at 0.6 × and 15 at 2.0 ×). The parallax counts as a distance of the track in both images
+    together (÷ √2), the measure of the Sampson distance, so the same noise bound applies."""
     a, b = pairs[:, 0], pairs[:, 1]
     seen = visible[a] & visible[b]  # (P, N)
     x1, x2 = tracks[a], tracks[b]
-    members = seen & scene
-    F, residual, usable = trimmed_pair_fits(x1, x2, members, members.to(tracks.dtype), "fundamental")
-    inliers = members & (residual <= torch.where(members, residual, torch.nan).nanmedian(-1).values[:, None])
+    held = seen & members
+    F, residual, usable = trimmed_pair_fits(x1, x2, held, held.to(tracks.dtype), "fundamental")
+    inliers = held & (residual <= torch.where(held, residual, torch.nan).nanmedian(-1).values[:, None])
     extent = tracks[visible]
     low, high = extent.amin(0), extent.amax(0)
     K = intrinsics(FOCAL_PRIOR * float((high - low).max()), (low + high) / 2).to(tracks.dtype)
     n1, n2 = pixels_to_normalized(x1, K), pixels_to_normalized(x2, K)
-    own = torch.nonzero(scene)[:, 0]  # the pose's vote over the scene's tracks only (depths for 4 poses × all pairs × all N: 215 MB on KITTI 06)
+    own = torch.nonzero(members)[:, 0]  # the pose's vote over the members only (depths for 4 poses × all pairs × all N: 215 MB on KITTI 06)
     R, t, _ = select_pose(*POSE_CANDIDATES["svd"](essential_from_fundamental(F, K, K)), n1[:, own], n2[:, own],
                           inliers[:, own].to(tracks.dtype))
-    behind = (-K[0, 0] * parallax_from_infinity(R, t, n1, n2) / math.sqrt(2)).clamp_min(0)
-    counted = seen & usable[:, None]
-    return (torch.where(counted, behind.square(), 0.0).sum(0) / counted.sum(0).clamp_min(1)).sqrt()
+    return K[0, 0] * parallax_from_infinity(R, t, n1, n2) / math.sqrt(2), seen & usable[:, None]
 
 
 def weak_parallax(plane: Tensor, epipolar: Tensor, members: Tensor) -> bool:
@@ -407,15 +428,17 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     one_plane = one_plane_motions(tracks, visible, labels, pairs, plane)
     if one_plane:
         return joined_to_scene(labels, one_plane)
-    beyond_floor = float(plane[scene].nanmedian()) > config.scene_tolerance
-    if not beyond_floor and not weak_parallax(plane, epipolar, scene):
-        return labels
+    at_infinity = float(plane[scene].nanmedian()) <= config.scene_tolerance and not weak_parallax(plane, epipolar, scene)
+    noise = _noise_bound(pairs_seen(visible, pairs), config)
     explaining = []
     for motion in range(1, int(labels.max()) + 1):
         own = labels == motion
         if int(own.sum()) < MIN_VECTORS:
             continue
         own_fits = PairFits.of(tracks, visible, own, pairs)
+        if at_infinity and not (has_parallax(own_fits.plane, own_fits.epipolar, own, config)
+                                and bool((in_front(tracks, visible, own, pairs) / noise)[scene].nanmedian() > 1)):
+            continue
         transfer = homography_excess(visible, own, pairs, config, own_fits, flat=True)
         if bool(scene_excess(tracks, visible, own, pairs, config, generator, own_fits)[scene].nanmedian() <= 1) and (
                 transfer is None or bool(transfer[scene].nanmedian() <= 1)):

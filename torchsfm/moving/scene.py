@@ -22,8 +22,8 @@ from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamen
 from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
 from torchsfm.moving.imor import MIN_VECTORS
-from torchsfm.moving.pair_fits import (epipolar_residuals, frame_pairs, median_span, pairs_seen, plane_residuals, track_residuals,
-                                       trimmed_pair_fits)
+from torchsfm.moving.pair_fits import (epipolar_residuals, frame_pairs, median_span, pairs_seen, plane_residuals, ransac_inliers,
+                                       track_residuals, trimmed_pair_fits)
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group, rms_bound
 
 COVERAGE_GRID = 8
@@ -174,7 +174,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         if not bool(more.any()) or int((scene & ~more).sum()) < MIN_VECTORS:
             if behind is not None:
                 break
-            behind = depth_order_excess(tracks, visible, scene, pairs, config, fits_of(scene))  # this fit's pose, kept for the refits after
+            behind = depth_order_excess(tracks, visible, scene, pairs, config, fits_of(scene), generator)  # this fit's pose, kept for the refits after
             excess = with_depth_order(excess, behind)
             continue
         cut |= more
@@ -266,7 +266,7 @@ def reconstructed(tracks: Tensor, visible: Tensor, members: Tensor, config: Segm
 
 
 def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
-                       fits: PairFits) -> Tensor:
+                       fits: PairFits, generator: torch.Generator) -> Tensor:
     """(N,) how far each track lies beyond infinity under the (N,) bool ``scene`` tracks' pose
     (:func:`beyond_infinity`) over the bound noise at the tracker's floor
     (``config.scene_tolerance``) stays within for as many frame pairs (> 1: beyond). Only for a
@@ -274,7 +274,7 @@ def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Te
     :class:`PairFits`)."""
     if not has_parallax(fits.plane, fits.epipolar, scene, config):
         return torch.zeros(tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
-    return beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)
+    return beyond_infinity(tracks, visible, scene, pairs, generator) / _noise_bound(pairs_seen(visible, pairs), config)
 
 
 def with_depth_order(excess: Tensor, behind: Tensor) -> Tensor:
@@ -282,20 +282,20 @@ def with_depth_order(excess: Tensor, behind: Tensor) -> Tensor:
     return torch.where(excess.isnan(), excess, torch.maximum(excess, behind))
 
 
-def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor) -> Tensor:
+def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, generator: torch.Generator) -> Tensor:
     """(N,) every track's RMS over the frame pairs it is seen in of how far (pixels) it lies
     beyond infinity under the (N,) bool ``scene`` tracks' relative pose — behind both cameras,
     which no static point can be (:func:`parallax_under_pose`; 0 where in front)."""
-    parallax, counted = parallax_under_pose(tracks, visible, scene, pairs)
+    parallax, counted = parallax_under_pose(tracks, visible, scene, pairs, generator)
     return _pair_rms(parallax.neg().clamp_min(0), counted)
 
 
-def in_front(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> Tensor:
+def in_front(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor, generator: torch.Generator) -> Tensor:
     """(N,) every track's RMS over the frame pairs it is seen in of how far (pixels) it lies
     from infinity towards the cameras under the (N,) bool ``members`` tracks' relative pose
     (:func:`parallax_under_pose`; 0 where at or beyond infinity): the depth a static point of
     that motion's frame shows."""
-    parallax, counted = parallax_under_pose(tracks, visible, members, pairs)
+    parallax, counted = parallax_under_pose(tracks, visible, members, pairs, generator)
     return _pair_rms(parallax.clamp_min(0), counted)
 
 
@@ -304,7 +304,8 @@ def _pair_rms(values: Tensor, counted: Tensor) -> Tensor:
     return (torch.where(counted, values.square(), 0.0).sum(0) / counted.sum(0).clamp_min(1)).sqrt()
 
 
-def parallax_under_pose(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor) -> tuple[Tensor, Tensor]:
+def parallax_under_pose(tracks: Tensor, visible: Tensor, members: Tensor, pairs: Tensor,
+                        generator: torch.Generator) -> tuple[Tensor, Tensor]:
     """(P, N) every track's signed parallax (pixels) along its epipolar line from where its point
     at infinity would be seen, under the (N,) bool ``members`` tracks' relative pose in each of the
     P frame ``pairs`` (:func:`~torchsfm.geometry.essential.parallax_from_infinity`: positive in
@@ -322,7 +323,8 @@ def parallax_under_pose(tracks: Tensor, visible: Tensor, members: Tensor, pairs:
     seen = visible[a] & visible[b]  # (P, N)
     x1, x2 = tracks[a], tracks[b]
     held = seen & members
-    F, residual, usable = trimmed_pair_fits(x1, x2, held, held.to(tracks.dtype), "fundamental")
+    start = ransac_inliers(x1[None], x2[None], held[None], generator)[0]  # gross strays cannot pull the first fit
+    F, residual, usable = trimmed_pair_fits(x1, x2, held, start.to(tracks.dtype), "fundamental")
     inliers = held & (residual <= torch.where(held, residual, torch.nan).nanmedian(-1).values[:, None])
     extent = tracks[visible]
     low, high = extent.amin(0), extent.amax(0)
@@ -437,7 +439,7 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
             continue
         own_fits = PairFits.of(tracks, visible, own, pairs)
         if at_infinity and not (has_parallax(own_fits.plane, own_fits.epipolar, own, config)
-                                and bool((in_front(tracks, visible, own, pairs) / noise)[scene].nanmedian() > 1)):
+                                and bool((in_front(tracks, visible, own, pairs, generator) / noise)[scene].nanmedian() > 1)):
             continue
         transfer = homography_excess(visible, own, pairs, config, own_fits, flat=True)
         if bool(scene_excess(tracks, visible, own, pairs, config, generator, own_fits)[scene].nanmedian() <= 1) and (

@@ -25,6 +25,7 @@ from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.pair_fits import (epipolar_residuals, frame_pairs, median_span, pairs_seen, plane_residuals, ransac_inliers,
                                        track_residuals, trimmed_pair_fits)
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group, rms_bound
+from torchsfm.robust.samplers import side_generator
 
 COVERAGE_GRID = 8
 NOISE_PLANE_RATIO = 2.0  # noise alone puts a plane's tracks 2x as far from its homographies (transfer distance,
@@ -323,7 +324,7 @@ def parallax_under_pose(tracks: Tensor, visible: Tensor, members: Tensor, pairs:
     seen = visible[a] & visible[b]  # (P, N)
     x1, x2 = tracks[a], tracks[b]
     held = seen & members
-    start = ransac_inliers(x1[None], x2[None], held[None], generator)[0]  # gross strays cannot pull the first fit
+    start = ransac_inliers(x1[None], x2[None], held[None], side_generator(generator))[0]  # gross strays cannot pull the first fit
     F, residual, usable = trimmed_pair_fits(x1, x2, held, start.to(tracks.dtype), "fundamental")
     inliers = held & (residual <= torch.where(held, residual, torch.nan).nanmedian(-1).values[:, None])
     extent = tracks[visible]

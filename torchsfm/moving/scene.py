@@ -291,7 +291,7 @@ def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tenso
     0 where in front). The scene's F per pair (least-trimmed squares, as :func:`track_residuals`,
     from each pair's RANSAC inliers, drawn from a :func:`side_generator` of ``generator``: a
     trimmed fit from all the scene's tracks can be pulled by a few gross strays onto a wrong F —
-    synthetic, 5 frames: 3 strays among 388 background tracks put 24 of them beyond infinity)
+    synthetic, 5 frames: 3 strays among 385 background tracks put 36 of them beyond the bound)
     becomes a pose through the prior K of a camera without calibration (:func:`prior_intrinsics`). The
     sign of a track's parallax hardly depends on it where the camera mostly translates, and more
     where it turns (measured with the true background as the scene, focal length 0.6, 1.2 and 2.0 ×
@@ -357,9 +357,10 @@ def turning_only(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     ``plane``, p, by at most the tracker's floor, sqrt(r² − p²) ≤ ``config.scene_tolerance``. A
     plane seen by a camera that moved moves by a homography that no rotation is (synthetic walls
     20 m away, the camera 0.5 m a frame: 1.1-4.5 px; a still camera: 0.0-0.1 px; Hopkins155
-    1R2RCR, a turning camera: 0.7 px)."""
+    1R2RCR, a turning camera: 0.7 px). Where either median is unknown (NaN: too few tracks to
+    fit), as if it did."""
     r = float(rotation_residuals(tracks, visible, scene, pairs, prior_intrinsics(tracks, visible))[scene].nanmedian())
-    return r ** 2 - float(plane[scene].nanmedian()) ** 2 <= config.scene_tolerance ** 2
+    return not r ** 2 - float(plane[scene].nanmedian()) ** 2 > config.scene_tolerance ** 2
 
 
 def weak_parallax(plane: Tensor, epipolar: Tensor, members: Tensor) -> bool:
@@ -448,8 +449,9 @@ def join_explaining(tracks: Tensor, visible: Tensor, labels: Tensor, pairs: Tens
     (not :func:`turning_only`): a camera that only turns or stands still sees its scene move as
     points at infinity, which any motion that shares the camera's rotation explains, so the test
     would say nothing; a plane seen by a camera that moved is not at infinity, and the points off
-    it that the clustering split off explain it (synthetic: a wall and free points over 12 frames,
-    7 of 10 scenes split in two, 30-35 % misclassified; none now). Motions of fewer than 12 tracks are not fitted.
+    it that the clustering split off explain it (synthetic: a wall and free points over 12
+    frames, 7 of 10 scenes split in two, 30-35 % misclassified; none now). Motions of fewer than
+    12 tracks are not fitted.
     First, whatever the parallax, the motions that move as one plane with the scene
     (:func:`one_plane_motions`) join it, if any: pieces of a distant background, which under
     noise neither's fit explains the other by extrapolation.

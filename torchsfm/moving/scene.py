@@ -24,9 +24,8 @@ from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.pair_fits import (REFITS, epipolar_residuals, frame_pairs, median_span, pairs_seen, plane_residuals,
-                                       ransac_inliers, track_residuals, trimmed_pair_fits)
+                                       track_residuals, trimmed_pair_fits)
 from torchsfm.moving.static_tracks import RigidGroup, rigid_group, rms_bound
-from torchsfm.robust.samplers import side_generator
 
 COVERAGE_GRID = 8
 NOISE_PLANE_RATIO = 2.0  # noise alone puts a plane's tracks 2x as far from its homographies (transfer distance,
@@ -176,7 +175,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         if not bool(more.any()) or int((scene & ~more).sum()) < MIN_VECTORS:
             if behind is not None:
                 break
-            behind = depth_order_excess(tracks, visible, scene, pairs, config, fits_of(scene), generator)  # this fit's pose, kept for the refits after
+            behind = depth_order_excess(tracks, visible, scene, pairs, config, fits_of(scene))  # this fit's pose, kept for the refits after
             excess = with_depth_order(excess, behind)
             continue
         cut |= more
@@ -268,7 +267,7 @@ def reconstructed(tracks: Tensor, visible: Tensor, members: Tensor, config: Segm
 
 
 def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
-                       fits: PairFits, generator: torch.Generator) -> Tensor:
+                       fits: PairFits) -> Tensor:
     """(N,) how far each track lies beyond infinity under the (N,) bool ``scene`` tracks' pose
     (:func:`beyond_infinity`) over the bound noise at the tracker's floor
     (``config.scene_tolerance``) stays within for as many frame pairs (> 1: beyond). Only for a
@@ -276,7 +275,7 @@ def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Te
     :class:`PairFits`)."""
     if not has_parallax(fits.plane, fits.epipolar, scene, config):
         return torch.zeros(tracks.shape[1], dtype=tracks.dtype, device=tracks.device)
-    return beyond_infinity(tracks, visible, scene, pairs, generator) / _noise_bound(pairs_seen(visible, pairs), config)
+    return beyond_infinity(tracks, visible, scene, pairs) / _noise_bound(pairs_seen(visible, pairs), config)
 
 
 def with_depth_order(excess: Tensor, behind: Tensor) -> Tensor:
@@ -284,14 +283,11 @@ def with_depth_order(excess: Tensor, behind: Tensor) -> Tensor:
     return torch.where(excess.isnan(), excess, torch.maximum(excess, behind))
 
 
-def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, generator: torch.Generator) -> Tensor:
+def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor) -> Tensor:
     """(N,) every track's RMS over the frame pairs it is seen in of how far (pixels) it lies
     beyond infinity under the (N,) bool ``scene`` tracks' relative pose — behind both cameras,
     which no static point can be (:func:`~torchsfm.geometry.essential.parallax_from_infinity`;
-    0 where in front). The scene's F per pair (least-trimmed squares, as :func:`track_residuals`,
-    from each pair's RANSAC inliers, drawn from a :func:`side_generator` of ``generator``: a
-    trimmed fit from all the scene's tracks can be pulled by a few gross strays onto a wrong F —
-    synthetic, 5 frames: 3 strays among 385 background tracks put 36 of them beyond the bound)
+    0 where in front). The scene's F per pair (least-trimmed squares, as :func:`track_residuals`)
     becomes a pose through the prior K of a camera without calibration (:func:`prior_intrinsics`). The
     sign of a track's parallax hardly depends on it where the camera mostly translates, and more
     where it turns (measured with the true background as the scene, focal length 0.6, 1.2 and 2.0 ×
@@ -303,8 +299,7 @@ def beyond_infinity(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tenso
     seen = visible[a] & visible[b]  # (P, N)
     x1, x2 = tracks[a], tracks[b]
     members = seen & scene
-    start = ransac_inliers(x1[None], x2[None], members[None], side_generator(generator))[0]
-    fundamental, residual, usable = trimmed_pair_fits(x1, x2, members, start.to(tracks.dtype), "fundamental")
+    fundamental, residual, usable = trimmed_pair_fits(x1, x2, members, members.to(tracks.dtype), "fundamental")
     inliers = members & (residual <= torch.where(members, residual, torch.nan).nanmedian(-1).values[:, None])
     K = prior_intrinsics(tracks, visible)
     n1, n2 = pixels_to_normalized(x1, K), pixels_to_normalized(x2, K)

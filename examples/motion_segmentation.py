@@ -94,11 +94,7 @@ def synthetic_sequences() -> list[tuple[str, MotionTracks]]:
         for frames in (5, 8, 12):
             for seed in range(10):
                 scene = synthetic_moving_scene(seed, num_frames=frames, **options)
-                sizes = torch.bincount(scene.labels[scene.labels >= 0], minlength=int(scene.labels.max()) + 1)
-                kept = torch.cat([torch.tensor([-1]), torch.cumsum(sizes >= MIN_VECTORS, 0) - 1])  # label + 1 -> new label
-                labels = torch.where(sizes[scene.labels.clamp_min(0)] >= MIN_VECTORS, kept[scene.labels + 1], -1)
-                labels = torch.where(scene.labels >= 0, labels, -1)
-                found.append(("Synthetic", MotionTracks(f"{kind}_F{frames}_s{seed}", scene.tracks, labels,
+                found.append(("Synthetic", MotionTracks(f"{kind}_F{frames}_s{seed}", scene.tracks, scene.motion_labels(MIN_VECTORS),
                                                         scene.image_size, has_outliers=True)))
     return found
 

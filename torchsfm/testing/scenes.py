@@ -181,6 +181,15 @@ class MovingObjectScene:
     object_centres: Tensor
     points: Tensor
 
+    def motion_labels(self, min_tracks: int) -> Tensor:
+        """(N,) ``labels`` with every motion of fewer than ``min_tracks`` tracks (an object mostly
+        out of view) counted as outliers (-1) and the others renumbered in their order: the
+        motions a segmentation can find."""
+        counted = self.labels >= 0
+        label = self.labels.clamp_min(0)
+        kept = torch.bincount(label[counted], minlength=int(self.labels.max()) + 1) >= min_tracks
+        return torch.where(counted & kept[label], (torch.cumsum(kept, 0) - 1)[label], -1)
+
     def body_cameras(self, body: int) -> tuple[Tensor, Tensor]:
         """The camera's true poses relative to object ``body`` (1..k) in every frame, (F, 3, 3) and
         (F, 3): the object's frame is the world at frame 0, so they are R_f O_f and

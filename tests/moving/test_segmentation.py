@@ -1320,7 +1320,6 @@ def test_rotation_residuals_vanish_for_a_camera_that_only_turns():
     assert float(rotation_residuals(moved, visible, everyone, frame_pairs(visible), K).median()) > 1
 
 
-
 @pytest.mark.parametrize("steady", [False, True])
 def test_twelve_frame_synthetic_scenes_are_segmented_within_a_percent(steady):
     """Seeds 0-9 of the 12-frame synthetic scenes (a wall and free points, two objects stepping at

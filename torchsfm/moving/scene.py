@@ -20,6 +20,7 @@ from torch import Tensor
 from torchsfm.camera import FOCAL_PRIOR, from_homogeneous, pixels_to_normalized, to_homogeneous
 from torchsfm.config import FundamentalConfig, MovingObjectsConfig, SegmentationConfig
 from torchsfm.geometry.essential import POSE_CANDIDATES, essential_from_fundamental, parallax_from_infinity, select_pose
+from torchsfm.geometry.rotation import nearest_rotation
 from torchsfm.geometry.self_calibration import intrinsics
 from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
 from torchsfm.moving.imor import MIN_VECTORS
@@ -324,19 +325,17 @@ def rotation_residuals(tracks: Tensor, visible: Tensor, members: Tensor, pairs: 
     """(N,) every track's RMS transfer distance (pixels) over the (P, 2) frame pairs it is seen
     in to the (N,) bool ``members`` tracks' rotation of each pair, K R K⁻¹ (K (3, 3)): the rays of
     the second frame aligned with those of the first by the rotation that aligns the members'
-    best (orthogonal Procrustes), refitted ``REFITS`` times on the half of them it fits best (as
-    the trimmed fits of :func:`~torchsfm.moving.pair_fits.track_residuals`); NaN where the track
-    is seen in no pair."""
+    best (orthogonal Procrustes: :func:`~torchsfm.geometry.rotation.nearest_rotation` of
+    Σ w r₂ r₁ᵀ), refitted ``REFITS`` times on the half of them it fits best (as the trimmed fits
+    of :func:`~torchsfm.moving.pair_fits.track_residuals`); NaN where the track is seen in no
+    pair."""
     a, b = pairs[:, 0], pairs[:, 1]
     seen = visible[a] & visible[b]  # (P, N)
     held = seen & members
     rays = [F.normalize(to_homogeneous(pixels_to_normalized(tracks[frames], K)), dim=-1) for frames in (a, b)]  # (P, N, 3) each
     weights = held.to(tracks.dtype)
     for _ in range(REFITS + 1):
-        U, _, Vh = torch.linalg.svd((rays[1] * weights[..., None]).transpose(-1, -2) @ rays[0])  # Σ w r2 r1ᵀ
-        sign = torch.ones_like(U[..., 0])
-        sign[:, 2] = torch.det(U @ Vh)
-        R = U @ torch.diag_embed(sign) @ Vh  # (P, 3, 3): r2 ≈ R r1
+        R = nearest_rotation((rays[1] * weights[..., None]).transpose(-1, -2) @ rays[0])  # (P, 3, 3): r2 ≈ R r1
         distance = (from_homogeneous(rays[0] @ (K @ R).transpose(-1, -2)) - tracks[b]).norm(dim=-1)  # (P, N)
         half = torch.where(held, distance, torch.nan).nanmedian(-1).values
         weights = (held & (distance <= half[:, None])).to(tracks.dtype)

@@ -1,6 +1,6 @@
 """Numeric helpers the batched engines share: the one guard of every division by a non-negative
-quantity that may be zero, the per-problem choice between two batched tensors, and the
-conversions to a compressed-sparse-row matrix."""
+quantity that may be zero, the per-problem choice between two batched tensors, the
+conversions to a compressed-sparse-row matrix, and the connected components of a graph."""
 
 from __future__ import annotations
 
@@ -50,3 +50,18 @@ def _without_beta_warning() -> Iterator[None]:
 def where_per_problem(condition: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """Per problem, ``a`` where the (B,) ``condition`` holds, else ``b``: two (B, *M) tensors."""
     return torch.where(condition.reshape(-1, *([1] * (a.dim() - 1))), a, b)
+
+
+def component_labels(first: Tensor, second: Tensor, count: int) -> Tensor:
+    """(count,) the connected component of each of ``count`` nodes joined by the edges (E,)
+    ``first`` - (E,) ``second``, named by its smallest node: label propagation along the edges
+    with pointer jumping (a handful of passes over the edges, not one per step of the longest path)."""
+    labels = torch.arange(count, device=first.device)
+    while first.numel():
+        smallest = torch.minimum(labels[first], labels[second])
+        updated = labels.scatter_reduce(0, first, smallest, "amin").scatter_reduce(0, second, smallest, "amin")
+        updated = updated[updated]
+        if torch.equal(updated, labels):
+            break
+        labels = updated
+    return labels

@@ -96,7 +96,8 @@ from torchsfm.config import SegmentationConfig
 from torchsfm.errors import InputError, NotEnoughDataError
 from torchsfm.inference import without_autograd
 from torchsfm.moving.affinity import explained_tracks, preference_similarity, strongest_links
-from torchsfm.moving.clustering import largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition
+from torchsfm.moving.clustering import (largest_first, leading_eigenvectors, merge_clusters, normalized_cut, spectral_partition,
+                                       split_by_components)
 from torchsfm.moving.imor import MIN_VECTORS
 from torchsfm.moving.pair_fits import frame_pairs, motion_residuals, track_residuals
 from torchsfm.moving.scene import (grid_coverage, merge_most_rigid, partition_residual, rechosen_scene, scene_first, settle_scene,
@@ -242,7 +243,7 @@ def _segment_once(tracks: Tensor, visible: Tensor, config: SegmentationConfig, n
     if num_motions is not None and num_motions > index.numel():  # a positive int (checked by segment_motions)
         raise NotEnoughDataError(f"cannot split {index.numel()} tracks into {num_motions} motions")
     pieces = min(vectors.shape[1], max(num_motions or 1, min(config.pieces, index.numel() // (2 * config.support))))
-    cut = spectral_partition(vectors, pieces, config, generator)
+    cut = split_by_components(affinity, spectral_partition(vectors, pieces, config, generator), MIN_VECTORS)
     N = tracks.shape[1]
     piece_of = torch.full((N,), -1, dtype=torch.long, device=tracks.device)
     piece_of[index] = cut

@@ -8,6 +8,8 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from torchsfm.numerics import component_labels
+
 PAIR_SUM_CHUNK = 4096  # tracks per dense (views × tracks) table of Tracks.pair_sums
 
 
@@ -136,16 +138,7 @@ def build_tracks(num_corners: list[int], matches: dict[tuple[int, int], tuple[Te
     total = int(offsets[-1])
     views_of = torch.repeat_interleave(torch.arange(len(num_corners)), torch.tensor(num_corners, dtype=torch.long))
     edges = [torch.stack([offsets[i] + a, offsets[j] + b]) for (i, j), (a, b) in matches.items() if a.numel()]
-    labels = torch.arange(total)
-    if edges:
-        u, v = torch.cat(edges, dim=1)
-        while True:  # label propagation with pointer jumping: every component ends at its smallest id
-            smallest = torch.minimum(labels[u], labels[v])
-            updated = labels.scatter_reduce(0, u, smallest, "amin").scatter_reduce(0, v, smallest, "amin")
-            updated = updated[updated]
-            if torch.equal(updated, labels):
-                break
-            labels = updated
+    labels = component_labels(*torch.cat(edges, dim=1), total) if edges else torch.arange(total)
     component_size = torch.bincount(labels, minlength=total)
     in_component = component_size[labels] >= 2
     # a consistent component has exactly one corner per view it touches (no (corners × views) table: long videos)

@@ -106,9 +106,12 @@ def split_by_components(affinity: Tensor, labels: Tensor, min_size: int) -> Tens
     piece was, where it has none). Tracks that no chain of links joins share no evidence of one
     motion, yet k-means may put them in one piece: the rows of unlinked groups are orthogonal,
     but a piece's centre between two groups can be a local minimum of its cost. Merging then
-    joins both groups through that piece (measured: a still camera's two objects, 60 tracks
-    each without a link between them, and Hopkins155 2T3RCTP's two objects, 110 and 77 tracks,
-    each found as one motion with another's piece in it)."""
+    joins both groups through that piece. Measured: a still camera's two objects (synthetic, 12
+    frames, seed 3; 60 tracks each, no link between them) had 14 and 16 tracks in one piece and
+    were found as one motion (10.4 % misclassified; now 0); in Hopkins155 2T3RCTP (seed 0) a
+    piece held 23 tracks of a 77-track part of the background that no link joins to the rest and
+    19 of an object's 110, and that part stayed a motion of its own (16.6 %; now its tracks come
+    out as clusters of their own, which settling joins into one scene: 0.2 %)."""
     rows, columns = torch.nonzero(affinity > 0, as_tuple=True)
     component = component_labels(rows, columns, labels.numel())
     large = torch.bincount(component, minlength=labels.numel())[component] >= min_size

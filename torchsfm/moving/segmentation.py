@@ -27,7 +27,8 @@ minimal-sample models:
    two unrelated preference sets are by chance (q / (2 - q) for share q) fits no motion: it is
    an outlier, labelled -1. The affinity keeps each track's ``links`` strongest links.
 4. **Clustering**: spectral k-means (normalized affinity, ``restarts`` batched restarts) cuts
-   the tracks into ``pieces``; pieces are merged two at a time, the pair most strongly linked
+   the tracks into ``pieces``, each split along the affinity graph's unlinked groups
+   (:func:`split_by_components`); pieces are merged two at a time, the pair most strongly linked
    relative to the smaller one's volume first. The number of motions (when not given) is the
    count just before the largest relative drop of that link over the merges (model selection on
    the dendrogram; see :func:`merge_clusters`). The tracks are then also cut directly into that

@@ -388,11 +388,11 @@ def turned_homographies(features: CoarseFeatures, pairs: list[tuple[int, int]], 
     30 degrees; ``examples/real_world.py``): the right turn had the most matches in each (77-139
     against at most 65-86 at another), and the other turns' fits kept 5-11 inliers (fewer than
     ``min_score``) — eleven fits where three decide, on pairs that mostly hold no turn at all."""
-    unturned = coarse_homographies(features, pairs, config, generator)
-    matches = [coarse_matches(features, pairs, config, turn) for turn in range(1, TURNS)]
-    counts = torch.tensor([[rows.shape[0] for rows in turn] for turn in matches]).reshape(TURNS - 1, len(pairs))
-    ranked = counts.argsort(dim=0, descending=True, stable=True)[:FITTED_TURNS]  # (FITTED_TURNS, pairs): each pair's turns - 1
-    found, best = {}, dict(unturned[1])
+    matches = [coarse_matches(features, pairs, config, turn) for turn in range(TURNS)]
+    _, best = fit_homographies(pairs, matches[0], config, generator)  # the upright fit's inliers: the count to beat
+    counts = torch.tensor([[rows.shape[0] for rows in turn] for turn in matches[1:]]).reshape(TURNS - 1, len(pairs))
+    ranked = 1 + counts.argsort(dim=0, descending=True, stable=True)[:FITTED_TURNS]  # (FITTED_TURNS, pairs): turns
+    found = {}
     for rank in ranked.tolist():
         homographies, inliers = fit_homographies(pairs, [matches[turn][k] for k, turn in enumerate(rank)], config, generator)
         for pair in pairs:

@@ -104,3 +104,25 @@ def test_named_frame_cuts_keep_the_first_half_or_every_other_frame_and_two_views
         sequence.cut("last-half")
     with pytest.raises(InputError, match="fewer than 3"):
         sequence.on_frames(torch.tensor([0, 1, 2, 3])).cut("every-other")
+
+
+def test_a_subset_keeps_a_seeded_share_of_the_tracks_with_their_labels_and_visibility():
+    """``MotionTracks.subset``: each track kept with the probability given (4 000 tracks: the
+    share kept within 3 % of it), its positions, label and visibility together; the same seed, the
+    same tracks; a share outside (0, 1] is an InputError."""
+    from torchsfm.errors import InputError
+    from torchsfm.io.datasets import MotionTracks
+
+    N = 4000
+    tracks = torch.arange(3 * N * 2, dtype=torch.float64).reshape(3, N, 2)
+    visible = torch.rand(3, N, generator=torch.Generator().manual_seed(1)) > 0.2
+    sequence = MotionTracks(name="s", tracks=tracks, labels=torch.arange(N), image_size=(640, 480), visible=visible)
+    half = sequence.subset(0.5, seed=7)
+    assert abs(half.labels.numel() / N - 0.5) < 0.03
+    assert_close(half.tracks, tracks[:, half.labels], rtol=0, atol=0)  # labels are the track indices here
+    assert_close(half.visible, visible[:, half.labels], rtol=0, atol=0)
+    assert_close(sequence.subset(0.5, seed=7).labels, half.labels, rtol=0, atol=0)
+    assert sequence.subset(1.0).labels.numel() == N
+    for share in (0.0, 1.5):
+        with pytest.raises(InputError, match="share"):
+            sequence.subset(share)

@@ -237,6 +237,14 @@ class MotionTracks:
         noise = sigma * torch.randn(self.tracks.shape, generator=torch.Generator().manual_seed(seed), dtype=self.tracks.dtype)
         return replace(self, tracks=torch.where(self.visible[..., None], self.tracks + noise, self.tracks))
 
+    def subset(self, share: float, seed: int = 0) -> MotionTracks:
+        """The sequence with each track kept with probability ``share`` (seeded by ``seed``): the
+        view of a sparser tracker, with fewer tracks on every motion, for robustness checks."""
+        if not 0 < share <= 1:
+            raise InputError(f"share must lie in (0, 1], got {share}")
+        kept = torch.rand(self.labels.numel(), generator=torch.Generator().manual_seed(seed)) < share
+        return replace(self, tracks=self.tracks[:, kept], labels=self.labels[kept], visible=self.visible[:, kept])
+
     def cut(self, frames: str) -> MotionTracks:
         """The sequence on the frames ``frames`` names (:data:`FRAME_CUTS`: ``all``, ``first-half``
         — at least 3 —, ``every-other``; :meth:`on_frames`); two views stay as they are, and a cut

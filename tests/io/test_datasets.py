@@ -109,7 +109,7 @@ def test_named_frame_cuts_keep_the_first_half_or_every_other_frame_and_two_views
 def test_a_subset_keeps_a_seeded_share_of_the_tracks_with_their_labels_and_visibility():
     """``MotionTracks.subset``: each track kept with the probability given (4 000 tracks: the
     share kept within 3 % of it), its positions, label and visibility together; the same seed, the
-    same tracks; a share outside (0, 1] is an InputError."""
+    same tracks, another seed, others; a share outside (0, 1] is an InputError."""
     from torchsfm.errors import InputError
     from torchsfm.io.datasets import MotionTracks
 
@@ -122,6 +122,7 @@ def test_a_subset_keeps_a_seeded_share_of_the_tracks_with_their_labels_and_visib
     assert_close(half.tracks, tracks[:, half.labels], rtol=0, atol=0)  # labels are the track indices here
     assert_close(half.visible, visible[:, half.labels], rtol=0, atol=0)
     assert_close(sequence.subset(0.5, seed=7).labels, half.labels, rtol=0, atol=0)
+    assert not torch.equal(sequence.subset(0.5, seed=8).labels, half.labels)
     assert sequence.subset(1.0).labels.numel() == N
     for share in (0.0, 1.5):
         with pytest.raises(InputError, match="share"):

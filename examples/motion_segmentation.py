@@ -120,8 +120,8 @@ def two_motion_subsets(sequence: MotionTracks) -> list[MotionTracks]:
 
 def opencv_sequential_ransac(sequence: MotionTracks, motions: int) -> torch.Tensor | None:
     """Sequential RANSAC on F between two frames (module docstring): (N,) labels, or None
-    without OpenCV. A round OpenCV finds no F in (it raises on some sets of a few tracks) ends
-    the sequence: the tracks left stay unassigned."""
+    without OpenCV. A round in which OpenCV finds no F, or raises (it did on a sequence cut to half
+    its tracks), ends the sequence: the tracks left stay unassigned."""
     try:
         import cv2
         import numpy as np
@@ -175,7 +175,7 @@ def main() -> None:
           f"{'found %':>8s} {'given %':>8s} {'OpenCV %':>9s} {'s':>6s}")
     for name, sequence in synthetic_sequences() if args.synthetic else sequences(args.data):
         sequence = sequence.cut(args.frames)
-        sequence = sequence.subset(args.tracks) if args.tracks != 1 else sequence
+        sequence = sequence.subset(args.tracks)  # share 1 keeps every track
         sequence = sequence.with_noise(args.noise) if args.noise else sequence
         truth = sequence.labels
         motions = int(truth.max()) + 1

@@ -1279,8 +1279,8 @@ def test_adjusted_rand_index_is_one_for_the_same_partition_and_near_zero_for_unr
 @pytest.mark.skipif(not (DATA / "kt3dmoseg_dev").is_dir(), reason="needs ../shared/data (KT3DMoSeg)")
 def test_the_runs_are_outvoted_by_the_partition_most_of_them_agree_with():
     """``runs`` = 3 returns the medoid of the three runs one generator draws in turn (each as a
-    call with the default ``runs`` = 1 on it): KT3DMoSeg Seq059_Clip01 at seed 4, whose first run leaves 12.7 % of
-    the tracks misclassified, the second 5.0 % and the third 18.7 % (measured): the first is outvoted."""
+    call with the default ``runs`` = 1 on it): KT3DMoSeg Seq059_Clip01 at seed 4, whose first run leaves 19.6 % of
+    the tracks misclassified, the second 0.4 % and the third 9.3 % (measured): the first is outvoted."""
     from torchsfm.moving.segmentation import adjusted_rand_index
     from torchsfm.io.datasets import read_kt3dmoseg
 
@@ -1291,7 +1291,7 @@ def test_the_runs_are_outvoted_by_the_partition_most_of_them_agree_with():
     ensemble = segment_motions(sequence.tracks, sequence.visible, config=SegmentationConfig(runs=3), generator=torch.Generator().manual_seed(4))
     assert torch.equal(ensemble.labels, single[max(range(3), key=lambda r: (agreement[r], -r))])
     first, ours = misclassification(single[0], sequence.labels), misclassification(ensemble.labels, sequence.labels)
-    assert first > 0.1 and ours < first / 2, (first, ours)
+    assert first > 0.05 and ours < 0.01, (first, ours)
 
 
 def test_a_static_scene_of_a_wall_and_free_points_stays_one_motion():

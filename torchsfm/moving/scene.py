@@ -11,7 +11,6 @@ explains best are joined (:func:`merge_most_rigid`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -115,12 +114,7 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
     scene (:attr:`MotionSegmentation.pieces`) with more than half its tracks beyond it is cut.
     The scene without the cut pieces judges the motions and its pieces again, until it cuts
     nothing more: a fit over a scene that still holds a body's pieces is pulled towards them and
-    explains some. Where that fit is the scene's projective reconstruction, the refit is the
-    better by consensus (the tracks it explains, of the scene or not: RANSAC's criterion) of a
-    fresh one and one refitted from the last one's cameras: a fresh start is one draw among fits
-    of varied quality, and a draw that fitted the rest worse than the fit before it had cut
-    piece after piece of a static background (KT3DMoSeg Seq059_Clip01 with half its tracks, seed
-    0: 63.7 → 19.5 % misclassified). Then the last fit's excess is raised
+    explains some. Then the last fit's excess is raised
     by the depth order (:func:`depth_order_excess` of that fit's pose, :func:`with_depth_order`)
     and the cutting goes on until it cuts nothing more: only then, for a pose fitted together
     with a body it explains misplaces infinity (measured on a synthetic scene of two bodies: with
@@ -159,32 +153,13 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
         fitted.append((scene, PairFits.of(tracks, visible, scene, pairs)))
         return fitted[-1][1]
 
-    latest: list[tuple[Tensor, RigidGroup]] = []  # the scene's last reconstruction, with the tracks it was made of
-
-    def reconstruct(scene: Tensor) -> RigidGroup | str:
-        """The scene's projective reconstruction; for a scene cut from the last one
-        reconstructed, the better by consensus of a fresh one and one refitted from that one's
-        cameras (:func:`reconstructed` with ``start``)."""
-        group = reconstructed(tracks, visible, scene, config, generator)
-        if latest and not bool((scene & ~latest[0][0]).any()):
-            refit = reconstructed(tracks, visible, scene, config, generator, latest[0][1])
-            if isinstance(group, str) or (not isinstance(refit, str) and consensus(refit, scene) >= consensus(group, scene)):
-                group = refit
-        if not isinstance(group, str):
-            latest[:] = [(scene, group)]
-        return group
-
-    def consensus(group: RigidGroup, scene: Tensor) -> int:
-        """How many tracks, of the scene or not, the scene's reconstruction ``group`` explains."""
-        return int((group_excess(group, scene, config) <= 1).sum())
-
     cut = torch.zeros_like(labels, dtype=torch.bool)  # labelled 0 until made bodies, but out of the scene's fit
     behind = None  # judged once the residuals cut nothing more: a pose fitted with a body's pieces misplaces infinity
     excess = None  # fitted anew whenever the scene changes
     while True:  # each pass cuts a piece or ends
         scene = (labels == 0) & ~cut
         if excess is None:
-            excess = scene_excess(tracks, visible, scene, pairs, config, generator, fits_of(scene), reconstruct)
+            excess = scene_excess(tracks, visible, scene, pairs, config, generator, fits_of(scene))
             transfer = homography_excess(visible, scene, pairs, config, fits_of(scene))
             if behind is not None:
                 excess = with_depth_order(excess, behind)
@@ -220,12 +195,10 @@ def settle_scene(tracks: Tensor, visible: Tensor, labels: Tensor, pieces: Tensor
 
 
 def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,
-                 generator: torch.Generator, fits: PairFits | None = None,
-                 reconstruct: Callable[[Tensor], RigidGroup | str] | None = None) -> Tensor:
+                 generator: torch.Generator, fits: PairFits | None = None) -> Tensor:
     """(N,) every track's residual under the scene's rigid motion over its inconsistency bound
     (> 1: inconsistent; NaN where not judged), for the (N,) bool ``scene`` tracks (``fits``:
-    their :class:`PairFits`, where the caller has them; ``reconstruct``: what makes the (N,)
-    bool scene's projective reconstruction, by default :func:`reconstructed` afresh).
+    their :class:`PairFits`, where the caller has them).
 
     The bound is the larger of ``config.scene_tolerance`` (the tracker's noise floor, px) and
     σ·sqrt(χ²_(1−α)(d) / n) (σ the scene's median residual, n the residual's terms, d its
@@ -254,7 +227,7 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     plane, rms = fits if fits is not None else PairFits.of(tracks, visible, scene, pairs)
     parallax = has_parallax(plane, rms, scene, config)
     if tied and parallax:
-        reconstructed = reconstruction_excess(tracks, visible, scene, config, generator, reconstruct)
+        reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
         if reconstructed is not None:
             return reconstructed
     seen = pairs_seen(visible, pairs)
@@ -266,41 +239,32 @@ def scene_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, 
     if not (tied and weak_parallax(plane, rms, scene)):
         return excess
     # parallax beyond the scene's own noise: its reconstruction is one more way a static track is explained
-    reconstructed = reconstruction_excess(tracks, visible, scene, config, generator, reconstruct)
+    reconstructed = reconstruction_excess(tracks, visible, scene, config, generator)
     return excess if reconstructed is None else torch.fmin(excess, reconstructed)
 
 
 def reconstruction_excess(tracks: Tensor, visible: Tensor, scene: Tensor, config: SegmentationConfig,
-                          generator: torch.Generator, reconstruct: Callable[[Tensor], RigidGroup | str] | None = None
-                          ) -> Tensor | None:
+                          generator: torch.Generator) -> Tensor | None:
     """(N,) every track's reprojection RMS under the (N,) bool ``scene`` tracks' projective
-    reconstruction over all frames (:func:`~torchsfm.moving.static_tracks.rigid_group`; made by
-    ``reconstruct``, by default :func:`reconstructed`) over its bound (d = 2m - 3 for m frames;
-    NaN where not judged), or None where the reconstruction fails (:func:`scene_excess`)."""
-    group = reconstructed(tracks, visible, scene, config, generator) if reconstruct is None else reconstruct(scene)
+    reconstruction over all frames (:func:`~torchsfm.moving.static_tracks.rigid_group`) over its
+    bound (d = 2m - 3 for m frames; NaN where not judged), or None where the reconstruction
+    fails (:func:`scene_excess`)."""
+    group = reconstructed(tracks, visible, scene, config, generator)
     if isinstance(group, str):
         return None
-    return group_excess(group, scene, config)
-
-
-def group_excess(group: RigidGroup, scene: Tensor, config: SegmentationConfig) -> Tensor:
-    """(N,) every track's reprojection RMS under the (N,) bool ``scene`` tracks' reconstruction
-    ``group`` over its bound (d = 2m - 3 for m frames; NaN where not judged)."""
     rms = torch.where(group.rms.isfinite(), group.rms, torch.nan)
     terms = 2 * group.frames_seen.clamp_min(3)
     return rms / _bound(rms[scene].nanmedian(), terms - 3, terms, config)
 
 
 def reconstructed(tracks: Tensor, visible: Tensor, members: Tensor, config: SegmentationConfig,
-                  generator: torch.Generator, start: RigidGroup | None = None) -> RigidGroup | str:
+                  generator: torch.Generator) -> RigidGroup | str:
     """The (N,) bool ``members`` tracks' projective reconstruction over all frames
     (:func:`~torchsfm.moving.static_tracks.rigid_group` with the project's default RANSAC and the
-    segmentation's refinements, noise floor and significance; from ``start``'s cameras where
-    given), or why it failed."""
+    segmentation's refinements, noise floor and significance), or why it failed."""
     return rigid_group(tracks, visible, members, fundamental_ransac=FundamentalConfig().ransac,
                        resection_ransac=MovingObjectsConfig().resection_ransac, refinements=config.scene_refinements,
-                       threshold=config.scene_tolerance, significance=config.scene_significance, generator=generator,
-                       start=start)
+                       threshold=config.scene_tolerance, significance=config.scene_significance, generator=generator)
 
 
 def depth_order_excess(tracks: Tensor, visible: Tensor, scene: Tensor, pairs: Tensor, config: SegmentationConfig,

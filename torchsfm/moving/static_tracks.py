@@ -108,8 +108,7 @@ def starting_frames(tracks: Tensor, visible: Tensor) -> tuple[int, int]:
 
 def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental_ransac: RansacConfig,
                 resection_ransac: RansacConfig, refinements: int = 3, threshold: float = 1.0,
-                significance: float = 1e-3, generator: torch.Generator | None = None,
-                start: RigidGroup | None = None) -> RigidGroup | str:
+                significance: float = 1e-3, generator: torch.Generator | None = None) -> RigidGroup | str:
     """Reconstruct the largest rigid group among ``members`` projectively over all frames, and
     measure every track (members or not) against it.
 
@@ -123,12 +122,6 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
         threshold: RMS reprojection error (px) up to which a track belongs to the group while
             the cameras are refined.
         generator: random source of the RANSACs.
-        start: a reconstruction of the same tracks to go on from (a group that has lost some
-            members): its cameras, and its members among ``members`` as the first core, in
-            place of steps 1-3 — no new random start, so the alternation refits from where the
-            last fit was (a fresh start is one draw among fits of varied quality: on KITTI
-            tracks the background's median reprojection RMS ranged over 0.18-0.28 px with the
-            seed).
 
     Returns:
         A :class:`RigidGroup`, or why no group could be reconstructed.
@@ -138,14 +131,28 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     scale = float(T[0, 0])
     x = torch.zeros_like(tracks)
     x[visible] = normalized
+    seen = visible & members
+    r, partner = starting_frames(tracks, seen)
+    shared = seen[r] & seen[partner]
+    if int(shared.sum()) < 2 * FundamentalModel.sample_size:
+        return f"no two frames share {2 * FundamentalModel.sample_size} tracks"
+    pair = torch.cat([tracks[r, shared], tracks[partner, shared]], dim=-1)[None]  # pixels: thresholds in px
+    found = ransac(FundamentalModel(pair), pair, fundamental_ransac, generator=generator)
+    if not bool(found.success[0]):
+        return f"no fundamental matrix between frames {r} and {partner}"
+    T_inv = torch.linalg.inv(T)
+    P_r, P_f = canonical_cameras(T_inv.transpose(-1, -2) @ found.model[0] @ T_inv)  # in normalized coordinates
+    group = torch.zeros(N, dtype=torch.bool, device=tracks.device)
+    group[shared] = found.inlier_mask[0]
+    cameras = torch.zeros(F, 3, 4, dtype=tracks.dtype, device=tracks.device)
+    cameras[r], cameras[partner] = P_r, P_f
+    two = torch.zeros(F, dtype=torch.bool, device=tracks.device)
+    two[[r, partner]] = True
+    X = triangulate_multiview(cameras[two], x[two], (visible[two] & group).double())
     model = ProjectiveResectionModel(scale)
-    if start is None:
-        seeded = _seeded_cameras(tracks, visible, members, x, T, model, fundamental_ransac, resection_ransac, generator)
-        if isinstance(seeded, str):
-            return seeded
-        cameras, camera_valid, group, r, partner = seeded
-    else:
-        cameras, camera_valid, group, r, partner = start.cameras, start.camera_valid, start.members & members, start.reference, start.partner
+    found = ransac(model, torch.cat([X.expand(F, N, 4), x], dim=-1), resection_ransac, valid=visible & group, generator=generator)
+    camera_valid = found.success
+    cameras = torch.where(camera_valid[:, None, None], found.model, cameras)
     # the camera / point alternations involve the members only; every track is measured once at the end
     index = torch.nonzero(members).flatten()
     x_members, visible_members, core = x[:, index], visible[:, index], group[index]
@@ -185,36 +192,6 @@ def rigid_group(tracks: Tensor, visible: Tensor, members: Tensor, *, fundamental
     group = members & tested & (rms <= bound)
     return RigidGroup(members=group, rms=rms, frames_seen=frames_seen, cameras=cameras, camera_valid=camera_valid,
                       reference=r, partner=partner)
-
-
-def _seeded_cameras(tracks: Tensor, visible: Tensor, members: Tensor, x: Tensor, T: Tensor, model: ProjectiveResectionModel,
-                    fundamental_ransac: RansacConfig, resection_ransac: RansacConfig,
-                    generator: torch.Generator | None) -> tuple[Tensor, Tensor, Tensor, int, int] | str:
-    """Steps 1-3 of the module docstring for the (N,) bool ``members`` of (F, N, 2) ``tracks``
-    (``x`` the same in coordinates normalized by T): cameras (F, 3, 4) in normalized
-    coordinates, their validity (F,), the (N,) bool seed group and the starting frames r, f*; or
-    why they could not be made."""
-    F, N, _ = tracks.shape
-    seen = visible & members
-    r, partner = starting_frames(tracks, seen)
-    shared = seen[r] & seen[partner]
-    if int(shared.sum()) < 2 * FundamentalModel.sample_size:
-        return f"no two frames share {2 * FundamentalModel.sample_size} tracks"
-    pair = torch.cat([tracks[r, shared], tracks[partner, shared]], dim=-1)[None]  # pixels: thresholds in px
-    found = ransac(FundamentalModel(pair), pair, fundamental_ransac, generator=generator)
-    if not bool(found.success[0]):
-        return f"no fundamental matrix between frames {r} and {partner}"
-    T_inv = torch.linalg.inv(T)
-    P_r, P_f = canonical_cameras(T_inv.transpose(-1, -2) @ found.model[0] @ T_inv)  # in normalized coordinates
-    group = torch.zeros(N, dtype=torch.bool, device=tracks.device)
-    group[shared] = found.inlier_mask[0]
-    cameras = torch.zeros(F, 3, 4, dtype=tracks.dtype, device=tracks.device)
-    cameras[r], cameras[partner] = P_r, P_f
-    two = torch.zeros(F, dtype=torch.bool, device=tracks.device)
-    two[[r, partner]] = True
-    X = triangulate_multiview(cameras[two], x[two], (visible[two] & group).double())
-    found = ransac(model, torch.cat([X.expand(F, N, 4), x], dim=-1), resection_ransac, valid=visible & group, generator=generator)
-    return torch.where(found.success[:, None, None], found.model, cameras), found.success, group, r, partner
 
 
 def _reprojection_sums(projected: Tensor, x: Tensor, observed: Tensor, scale: float) -> tuple[Tensor, Tensor]:
